@@ -1,0 +1,1 @@
+"""MaxMI for LeRobot."""

@@ -1,0 +1,55 @@
+"""Input checks and the copula (rank) transform shared by every estimator.
+
+MI is invariant to monotone maps of each variable, so estimators read the *copula* of the
+pairs: each column replaced by its normalized rank in (0, 1). The forward value is the exact
+average rank (ties share a rank, so a constant column becomes all 0.5); the backward pass uses
+the gradient of a sigmoid soft-rank, which lets MI gradients reach the raw samples.
+"""
+
+import torch
+from torch import Tensor
+
+MIN_SAMPLES = 4
+
+
+def check_pairs(x: Tensor, y: Tensor) -> None:
+    """Raise a ValueError that names the problem if (x, y) is not a valid batch of sample sets."""
+    if not (isinstance(x, Tensor) and isinstance(y, Tensor)):
+        raise TypeError(f"x and y must be torch tensors, got {type(x).__name__} and {type(y).__name__}")
+    if x.shape != y.shape:
+        raise ValueError(f"x and y must have the same shape (B, N); got {tuple(x.shape)} and {tuple(y.shape)}")
+    if x.ndim != 2:
+        raise ValueError(
+            f"x and y must be 2-D (B sets of N paired samples); got shape {tuple(x.shape)}. "
+            "For a single set use x.unsqueeze(0)."
+        )
+    if x.shape[1] < MIN_SAMPLES:
+        raise ValueError(f"each set needs at least {MIN_SAMPLES} paired samples; got N={x.shape[1]}")
+    if not (x.is_floating_point() and y.is_floating_point()):
+        raise TypeError(f"x and y must be floating point tensors; got {x.dtype} and {y.dtype}")
+    if not (torch.isfinite(x).all() and torch.isfinite(y).all()):
+        raise ValueError("x and y contain NaN or inf; remove or impute those samples before estimating MI")
+
+
+def hard_rank(x: Tensor) -> Tensor:
+    """Average rank of each entry along the last dim, scaled to (0, 1): (rank + 0.5) / N."""
+    ordered = x.sort(dim=-1).values.contiguous()
+    below = torch.searchsorted(ordered, x.contiguous(), right=False)
+    at_or_below = torch.searchsorted(ordered, x.contiguous(), right=True)
+    return (below + at_or_below).to(x.dtype) / (2 * x.shape[-1])
+
+
+def soft_rank(x: Tensor, temperature: float) -> Tensor:
+    """Sigmoid relaxation of `hard_rank`; the width is `temperature` standard deviations."""
+    std = x.std(dim=-1, keepdim=True)
+    width = torch.where(std > 0, temperature * std, torch.ones_like(std))
+    return torch.sigmoid((x.unsqueeze(-1) - x.unsqueeze(-2)) / width.unsqueeze(-1)).mean(dim=-1)
+
+
+def rank_normalize(x: Tensor, temperature: float = 0.1) -> Tensor:
+    """Exact normalized ranks forward, soft-rank gradient backward (straight-through)."""
+    ranks = hard_rank(x.detach())
+    if not (torch.is_grad_enabled() and x.requires_grad):
+        return ranks
+    soft = soft_rank(x, temperature)
+    return ranks + soft - soft.detach()
