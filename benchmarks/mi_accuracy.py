@@ -9,6 +9,7 @@ exact densities) and bivariate Gaussians with rho ~ U(-0.95, 0.95) (closed-form 
 
 import argparse
 import json
+import os
 import platform
 from dataclasses import asdict
 
@@ -19,7 +20,9 @@ from lerobot_maxmi.mi.evaluate import FAMILIES, evaluate_estimators, format_tabl
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
     parser.add_argument("--estimators", nargs="+", default=list(ESTIMATORS), choices=list(ESTIMATORS))
     parser.add_argument("--families", nargs="+", default=list(FAMILIES), choices=list(FAMILIES))
     parser.add_argument("--sizes", nargs="+", type=int, default=[100, 1000])
@@ -28,8 +31,13 @@ def main() -> None:
     parser.add_argument("--seed", type=int, default=12345)
     parser.add_argument("--json", help="also write the rows to this JSON file")
     args = parser.parse_args()
-    rows = evaluate_estimators(args.estimators, args.families, args.sizes, args.count, args.seed, args.mc_samples)
-    print(f"\n{args.count} distributions per row; torch threads: {torch.get_num_threads()}; {platform.processor()}")
+    rows = evaluate_estimators(
+        args.estimators, args.families, args.sizes, args.count, args.seed, args.mc_samples
+    )
+    print(
+        f"\n{args.count} distributions per row; torch threads: {torch.get_num_threads()}; "
+        f"{platform.machine()} {os.cpu_count()} cores"
+    )
     print(format_table(rows))
     if args.json:
         with open(args.json, "w") as f:

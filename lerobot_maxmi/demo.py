@@ -9,8 +9,9 @@ from lerobot_maxmi.mi.evaluate import FAMILIES, evaluate_estimators, format_tabl
 
 
 def main() -> None:
-    rows = evaluate_estimators(list(ESTIMATORS), list(FAMILIES), sizes=[100, 1000], count=50, seed=7,
-                               mc_samples=50_000)
+    rows = evaluate_estimators(
+        list(ESTIMATORS), list(FAMILIES), sizes=[100, 1000], count=50, seed=7, mc_samples=50_000
+    )
     print("\nMI estimators vs ground truth (50 fresh distributions per row):")
     print(format_table(rows))
 

@@ -28,7 +28,11 @@ def state_dataset(tmp_path):
     for length in (20, 25, 30):
         for state in np.cumsum(rng.normal(size=(length, STATE_DIM)), axis=0).astype(np.float32):
             dataset.add_frame(
-                {"observation.state": state, "action": rng.normal(size=ACTION_DIM).astype(np.float32), "task": "test"}
+                {
+                    "observation.state": state,
+                    "action": rng.normal(size=ACTION_DIM).astype(np.float32),
+                    "task": "test",
+                }
             )
         dataset.save_episode()
     dataset.finalize()

@@ -61,8 +61,8 @@ def test_gradient_ascent_increases_dependence(generator):
     x = x.clone().requires_grad_(True)
     estimator = load_estimator("infonet")
     before = estimator(x, y).item()
-    optimizer = torch.optim.SGD([x], lr=0.5)
-    for _ in range(30):
+    optimizer = torch.optim.Adam([x], lr=0.05)  # per-sample gradients scale as 1/N; Adam rescales them
+    for _ in range(40):
         optimizer.zero_grad()
         (-estimator(x, y)).sum().backward()
         optimizer.step()
@@ -101,7 +101,9 @@ def test_monte_carlo_mi_matches_closed_form_for_one_component(generator):
     mixtures = random_gaussian_mixtures(8, max_components=1, generator=generator)
     cov = mixtures.covariances[:, 0]
     rho = cov[:, 0, 1] / (cov[:, 0, 0] * cov[:, 1, 1]).sqrt()
-    torch.testing.assert_close(mixtures.monte_carlo_mi(20_000, generator), bivariate_gaussian_mi(rho), atol=0, rtol=0)
+    torch.testing.assert_close(
+        mixtures.monte_carlo_mi(20_000, generator), bivariate_gaussian_mi(rho), atol=0.02, rtol=0
+    )
 
 
 def test_state_mi_per_dim_ignores_constant_dimensions(generator):
@@ -120,7 +122,9 @@ def test_state_mi_sliced_is_seeded_and_orders_dependence(generator):
     dependent = torch.cat([s_a + 0.1 * torch.randn(1, 200, 5, generator=generator), torch.randn(1, 200, 5)])
     estimator = load_estimator("gaussian")
     mi = state_mi(s_a.expand(2, -1, -1), dependent, estimator, "sliced", 32, torch.Generator().manual_seed(1))
-    again = state_mi(s_a.expand(2, -1, -1), dependent, estimator, "sliced", 32, torch.Generator().manual_seed(1))
+    again = state_mi(
+        s_a.expand(2, -1, -1), dependent, estimator, "sliced", 32, torch.Generator().manual_seed(1)
+    )
     torch.testing.assert_close(mi, again)
     assert mi[0] > mi[1] + 0.05
 

@@ -93,7 +93,9 @@ def resolve_device(device: str | torch.device | None) -> torch.device:
 
 
 ESTIMATORS: dict[str, Callable[..., MIEstimator]] = {
-    "infonet": lambda device=None, pretrained=None: InfoNetEstimator(load_infonet(pretrained, device), "critic"),
+    "infonet": lambda device=None, pretrained=None: InfoNetEstimator(
+        load_infonet(pretrained, device), "critic"
+    ),
     "infonet_regression": lambda device=None, pretrained=None: InfoNetEstimator(
         load_infonet(pretrained, device), "regression"
     ),

@@ -57,7 +57,9 @@ def make_test_sets(
 
 def chunk_mi(mixtures, start: int, mc_samples: int, generator: torch.Generator) -> Tensor:
     """Monte-Carlo MI of 16 mixtures at a time, to bound memory."""
-    chunk = type(mixtures)(*(t[start : start + 16] for t in (mixtures.weights, mixtures.means, mixtures.covariances)))
+    chunk = type(mixtures)(
+        *(t[start : start + 16] for t in (mixtures.weights, mixtures.means, mixtures.covariances))
+    )
     return chunk.monte_carlo_mi(mc_samples, generator)
 
 
@@ -90,8 +92,17 @@ def evaluate_estimators(
         for name, estimator in estimators.items():
             estimate, ms = timed_estimate(estimator, sets)
             error = estimate - sets.mi
-            rows.append(Row(family, n, name, error.abs().mean().item(), error.mean().item(), ms,
-                            gradient_check(estimator, sets)))
+            rows.append(
+                Row(
+                    family,
+                    n,
+                    name,
+                    error.abs().mean().item(),
+                    error.mean().item(),
+                    ms,
+                    gradient_check(estimator, sets),
+                )
+            )
     return rows
 
 
@@ -101,8 +112,8 @@ def format_table(rows: list[Row]) -> str:
         "|---|---:|---|---:|---:|---:|---|",
     ]
     lines += [
-        f"| {r.family} | {r.num_samples} | {r.estimator} | {r.mae:.4f} | {r.bias:+.4f} | {r.ms_per_estimate:.3f} "
-        f"| {r.gradient_ok} |"
+        f"| {r.family} | {r.num_samples} | {r.estimator} | {r.mae:.4f} | {r.bias:+.4f} "
+        f"| {r.ms_per_estimate:.3f} | {r.gradient_ok} |"
         for r in rows
     ]
     return "\n".join(lines)

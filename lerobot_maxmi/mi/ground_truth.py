@@ -88,7 +88,9 @@ def bivariate_gaussian_mi(rho: Tensor) -> Tensor:
     return -0.5 * torch.log1p(-rho.square())
 
 
-def sample_bivariate_gaussian(rho: Tensor, num_samples: int, generator: torch.Generator | None = None) -> Tensor:
+def sample_bivariate_gaussian(
+    rho: Tensor, num_samples: int, generator: torch.Generator | None = None
+) -> Tensor:
     """(B, num_samples, 2) standard bivariate Gaussian samples with correlations rho (B,)."""
     z = torch.randn(rho.shape[0], num_samples, 2, generator=generator, dtype=rho.dtype)
     r = rho.unsqueeze(1)

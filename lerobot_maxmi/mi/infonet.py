@@ -61,7 +61,13 @@ class InfoNet(nn.Module, PyTorchModelHubMixin, library_name="lerobot_maxmi", tag
     """Set encoder with a Donsker–Varadhan critic head and a direct MI regression head."""
 
     def __init__(
-        self, dim: int, num_latents: int, num_heads: int, num_layers: int, grid_size: int, num_frequencies: int
+        self,
+        dim: int,
+        num_latents: int,
+        num_heads: int,
+        num_layers: int,
+        grid_size: int,
+        num_frequencies: int,
     ):
         super().__init__()
         self.grid_size = grid_size
@@ -81,7 +87,9 @@ class InfoNet(nn.Module, PyTorchModelHubMixin, library_name="lerobot_maxmi", tag
         self.embed_grid = point_embedding()
         self.read_latents = CrossAttentionBlock(dim, num_heads)
         self.critic_out = nn.Sequential(nn.LayerNorm(dim), nn.Linear(dim, 1))
-        self.regression_out = nn.Sequential(nn.LayerNorm(dim), nn.Linear(dim, dim), nn.GELU(), nn.Linear(dim, 1))
+        self.regression_out = nn.Sequential(
+            nn.LayerNorm(dim), nn.Linear(dim, dim), nn.GELU(), nn.Linear(dim, 1)
+        )
         centres = (torch.arange(grid_size) + 0.5) / grid_size
         v, u = torch.meshgrid(centres, centres, indexing="ij")  # row = v, column = u
         self.register_buffer("grid_points", torch.stack([u, v], dim=-1).reshape(-1, 2), persistent=False)
@@ -113,7 +121,9 @@ class InfoNet(nn.Module, PyTorchModelHubMixin, library_name="lerobot_maxmi", tag
 def lookup(table: Tensor, u: Tensor, v: Tensor) -> Tensor:
     """Bilinear read of a (B, G, G) table at (B, N) points in (0, 1)^2; cell centres are nodes."""
     coords = torch.stack([2 * u - 1, 2 * v - 1], dim=-1).unsqueeze(2)  # (B, N, 1, 2) as (x=u, y=v)
-    values = F.grid_sample(table.unsqueeze(1), coords, mode="bilinear", padding_mode="border", align_corners=False)
+    values = F.grid_sample(
+        table.unsqueeze(1), coords, mode="bilinear", padding_mode="border", align_corners=False
+    )
     return values.squeeze(1).squeeze(-1)
 
 

@@ -17,7 +17,9 @@ def check_pairs(x: Tensor, y: Tensor) -> None:
     if not (isinstance(x, Tensor) and isinstance(y, Tensor)):
         raise TypeError(f"x and y must be torch tensors, got {type(x).__name__} and {type(y).__name__}")
     if x.shape != y.shape:
-        raise ValueError(f"x and y must have the same shape (B, N); got {tuple(x.shape)} and {tuple(y.shape)}")
+        raise ValueError(
+            f"x and y must have the same shape (B, N); got {tuple(x.shape)} and {tuple(y.shape)}"
+        )
     if x.ndim != 2:
         raise ValueError(
             f"x and y must be 2-D (B sets of N paired samples); got shape {tuple(x.shape)}. "

@@ -62,7 +62,9 @@ def draw_batch(cfg: PretrainMIConfig, step: int) -> dict[str, torch.Tensor]:
         cfg.max_samples / cfg.min_samples
     )
     n = round(math.exp(log_n))
-    mixtures = random_gaussian_mixtures(cfg.batch_size, cfg.max_components, generator=generator, dtype=torch.float32)
+    mixtures = random_gaussian_mixtures(
+        cfg.batch_size, cfg.max_components, generator=generator, dtype=torch.float32
+    )
     points = mixtures.sample(n + cfg.critic_samples + cfg.mc_samples, generator)
     inputs, held_out, mc = points.split([n, cfg.critic_samples, cfg.mc_samples], dim=1)
     u, v = hard_rank(inputs[..., 0]), hard_rank(inputs[..., 1])
@@ -99,8 +101,10 @@ def warmup_cosine(warmup_steps: int, total_steps: int):
 
 def save(model, optimizer, scheduler, step: int, cfg: PretrainMIConfig, directory: Path) -> None:
     model.save_pretrained(directory)
-    torch.save({"optimizer": optimizer.state_dict(), "scheduler": scheduler.state_dict(), "step": step},
-               directory / TRAINING_STATE)
+    torch.save(
+        {"optimizer": optimizer.state_dict(), "scheduler": scheduler.state_dict(), "step": step},
+        directory / TRAINING_STATE,
+    )
     (directory / "pretrain_config.json").write_text(json.dumps(asdict(cfg), default=str, indent=2))
 
 
@@ -110,7 +114,9 @@ def pretrain(cfg: PretrainMIConfig) -> Path:
     device = resolve_device(cfg.device)
     checkpoint = cfg.output_dir / CHECKPOINT_DIR
     if checkpoint.exists() and not cfg.resume:
-        raise FileExistsError(f"{checkpoint} exists; pass --resume=true to continue it or choose another --output_dir")
+        raise FileExistsError(
+            f"{checkpoint} exists; pass --resume=true to continue it or choose another --output_dir"
+        )
     model = InfoNet(**asdict(cfg.model)).to(device)
     optimizer = torch.optim.AdamW(model.parameters(), lr=cfg.lr, weight_decay=1e-4)
     scheduler = torch.optim.lr_scheduler.LambdaLR(optimizer, warmup_cosine(cfg.warmup_steps, cfg.steps))

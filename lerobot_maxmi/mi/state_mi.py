@@ -52,7 +52,9 @@ def sliced_mi(
         )
         for _ in range(2)
     )
-    projected = [(s @ p.T).transpose(1, 2).reshape(batch * num_projections, n) for s, p in ((s_a, theta), (s_b, phi))]
+    projected = [
+        (s @ p.T).transpose(1, 2).reshape(batch * num_projections, n) for s, p in ((s_a, theta), (s_b, phi))
+    ]
     return estimator(*projected).view(batch, num_projections).mean(dim=1)
 
 

@@ -1,0 +1,74 @@
+"""`lerobot-maxmi-pretrain-mi`: tiny runs of the real training loop."""
+
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+import torch
+from safetensors.torch import load_file
+
+from lerobot_maxmi.mi.infonet import InfoNetConfig
+from lerobot_maxmi.mi.pretrain import CHECKPOINT_DIR, FINAL_DIR, PretrainMIConfig, pretrain
+
+
+def tiny_config(output_dir, steps):
+    return PretrainMIConfig(
+        output_dir=output_dir,
+        steps=steps,
+        batch_size=4,
+        warmup_steps=10,
+        min_samples=16,
+        max_samples=32,
+        critic_samples=32,
+        mc_samples=64,
+        max_components=3,
+        save_freq=2,
+        device="cpu",
+        model=InfoNetConfig(dim=16, num_latents=4, num_heads=2, num_layers=1, grid_size=8, num_frequencies=2),
+    )
+
+
+def weights(directory):
+    return load_file(directory / "model.safetensors")
+
+
+def test_resumed_run_matches_uninterrupted_run(tmp_path):
+    straight = pretrain(tiny_config(tmp_path / "straight", steps=4))
+    pretrain(tiny_config(tmp_path / "resumed", steps=2))
+    resumed_cfg = tiny_config(tmp_path / "resumed", steps=4)
+    resumed_cfg.resume = True
+    resumed = pretrain(resumed_cfg)
+    a, b = weights(straight), weights(resumed)
+    assert a.keys() == b.keys()
+    for key in a:
+        torch.testing.assert_close(a[key], b[key], msg=key)
+
+
+def test_refuses_to_overwrite_without_resume(tmp_path):
+    pretrain(tiny_config(tmp_path, steps=2))
+    assert (tmp_path / CHECKPOINT_DIR / "training_state.pt").exists()
+    with pytest.raises(FileExistsError, match="--resume=true"):
+        pretrain(tiny_config(tmp_path, steps=2))
+
+
+def test_command_line_entry_point(tmp_path):
+    args = [
+        f"--output_dir={tmp_path}",
+        "--steps=1",
+        "--batch_size=2",
+        "--min_samples=16",
+        "--max_samples=16",
+        "--critic_samples=16",
+        "--mc_samples=32",
+        "--model.dim=8",
+        "--model.num_latents=2",
+        "--model.num_heads=2",
+        "--model.num_layers=1",
+        "--model.grid_size=4",
+        "--device=cpu",
+    ]
+    command = Path(sys.executable).parent / "lerobot-maxmi-pretrain-mi"  # the installed console script
+    result = subprocess.run([command, *args], capture_output=True, text=True, timeout=300)
+    assert result.returncode == 0, result.stderr
+    assert (tmp_path / FINAL_DIR / "model.safetensors").exists()
