@@ -142,3 +142,11 @@ def test_infonet_save_and_load_round_trip(tmp_path, generator):
     expected = load_estimator("infonet", pretrained=str(tmp_path / "infonet"))(x, y)
     torch.testing.assert_close(reloaded(x, y), expected)
     assert (tmp_path / "infonet" / "model.safetensors").exists()
+
+
+def test_hub_repo_id_goes_through_the_hub_client():
+    """A repo id is resolved by huggingface_hub (offline here, so it stops at the network boundary)."""
+    from huggingface_hub.errors import HfHubHTTPError, LocalEntryNotFoundError, OfflineModeIsEnabled
+
+    with pytest.raises((OfflineModeIsEnabled, LocalEntryNotFoundError, HfHubHTTPError)):
+        load_estimator("infonet", pretrained="lerobot-maxmi-tests/no-such-infonet")

@@ -29,12 +29,13 @@ class InfoNetConfig:
     num_latents: int = 16
     num_heads: int = 4
     num_layers: int = 2
-    grid_size: int = 16
+    grid_size: int = 32
+    critic_rank: int = 16
     num_frequencies: int = 4
 
 
 def fourier_features(points: Tensor, num_frequencies: int) -> Tensor:
-    """[p, sin(2^k π p), cos(2^k π p)] for points in (0, 1)^2, k < num_frequencies."""
+    """[p, sin(2^k π p), cos(2^k π p)] for coordinates p in (0, 1), k < num_frequencies."""
     scales = math.pi * 2.0 ** torch.arange(num_frequencies, device=points.device, dtype=points.dtype)
     angles = (points.unsqueeze(-1) * scales).flatten(-2)
     return torch.cat([points, angles.sin(), angles.cos()], dim=-1)
@@ -67,6 +68,7 @@ class InfoNet(nn.Module, PyTorchModelHubMixin, library_name="lerobot_maxmi", tag
         num_heads: int,
         num_layers: int,
         grid_size: int,
+        critic_rank: int,
         num_frequencies: int,
     ):
         super().__init__()
@@ -84,15 +86,20 @@ class InfoNet(nn.Module, PyTorchModelHubMixin, library_name="lerobot_maxmi", tag
             dim, num_heads, 4 * dim, dropout=0.0, activation="gelu", batch_first=True, norm_first=True
         )
         self.process = nn.TransformerEncoder(layer, num_layers, enable_nested_tensor=False)
-        self.embed_grid = point_embedding()
-        self.read_latents = CrossAttentionBlock(dim, num_heads)
-        self.critic_out = nn.Sequential(nn.LayerNorm(dim), nn.Linear(dim, 1))
+        # One query per grid row (a value of v) and per column (a value of u): 2G queries, not G².
+        self.embed_axis = nn.Sequential(
+            nn.Linear(1 + 2 * num_frequencies, dim), nn.GELU(), nn.Linear(dim, dim)
+        )
+        self.axis_id = nn.Parameter(0.02 * torch.randn(2, dim))
+        self.read_latents = nn.MultiheadAttention(dim, num_heads, batch_first=True)
+        self.norm_axis = nn.LayerNorm(dim)
+        self.norm_latents = nn.LayerNorm(dim)
+        self.critic_out = nn.Sequential(nn.LayerNorm(dim), nn.Linear(dim, critic_rank + 1))
         self.regression_out = nn.Sequential(
             nn.LayerNorm(dim), nn.Linear(dim, dim), nn.GELU(), nn.Linear(dim, 1)
         )
-        centres = (torch.arange(grid_size) + 0.5) / grid_size
-        v, u = torch.meshgrid(centres, centres, indexing="ij")  # row = v, column = u
-        self.register_buffer("grid_points", torch.stack([u, v], dim=-1).reshape(-1, 2), persistent=False)
+        centres = ((torch.arange(grid_size) + 0.5) / grid_size).unsqueeze(-1)
+        self.register_buffer("grid_centres", centres, persistent=False)
 
     def encode(self, u: Tensor, v: Tensor) -> Tensor:
         """(B, N) copula samples -> (B, num_latents, dim) set summary."""
@@ -101,11 +108,22 @@ class InfoNet(nn.Module, PyTorchModelHubMixin, library_name="lerobot_maxmi", tag
         return self.process(self.read_pairs(latents, pairs))
 
     def critic_table(self, latents: Tensor) -> Tensor:
-        """(B, G, G) critic values at the grid cell centres (rows index v, columns u)."""
-        queries = self.embed_grid(fourier_features(self.grid_points.to(latents.dtype), self.num_frequencies))
-        queries = queries.expand(latents.shape[0], -1, -1)
-        table = self.critic_out(self.read_latents(queries, latents))
-        return table.view(-1, self.grid_size, self.grid_size)
+        """(B, G, G) critic at the grid cell centres (rows index v, columns u).
+
+        θ(u, v) = <f(u), g(v)> + a(u) + b(v): a rank-R factorization whose row and column
+        features are read from the latents by cross-attention. A Gaussian copula's log-density
+        is exactly rank 3 in this form.
+        """
+        axis = self.embed_axis(fourier_features(self.grid_centres.to(latents.dtype), self.num_frequencies))
+        queries = torch.cat([axis + self.axis_id[0], axis + self.axis_id[1]]).expand(latents.shape[0], -1, -1)
+        context = self.norm_latents(latents)
+        features = (
+            queries + self.read_latents(self.norm_axis(queries), context, context, need_weights=False)[0]
+        )
+        features = self.critic_out(features)  # (B, 2G, R + 1)
+        columns, rows = features.split(self.grid_size, dim=1)  # columns: u axis, rows: v axis
+        table = rows[..., :-1] @ columns[..., :-1].transpose(1, 2) / math.sqrt(rows.shape[-1] - 1)
+        return table + rows[..., -1:] + columns[..., -1].unsqueeze(1)
 
     def regression(self, latents: Tensor) -> Tensor:
         return F.softplus(self.regression_out(latents.mean(dim=1)).squeeze(-1))

@@ -34,7 +34,7 @@ TRAINING_STATE = "training_state.pt"
 @dataclass
 class PretrainMIConfig:
     output_dir: Path = Path("outputs/infonet")
-    steps: int = 8000
+    steps: int = 12_000
     batch_size: int = 64
     lr: float = 1e-3
     warmup_steps: int = 300
