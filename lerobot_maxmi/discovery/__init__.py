@@ -1,0 +1,1 @@
+"""Key-state discovery: KSL-Net, the MaxMI criterion, diversity terms and NMS."""

@@ -1,0 +1,73 @@
+"""Key State Localization Network (KSL-Net, MaxMI §3.2).
+
+Every trajectory is resampled to a fixed length T. For concept k, each time step t is
+described by [standardized s_t ; positional embedding(t) ; concept embedding(k)]. A pointwise
+(kernel-size-1) convolutional encoder maps the steps to features, a max-pool over time summarizes
+the trajectory, and an MLP gives T logits: where concept k sits in this trajectory. The
+positional embedding is what lets a max-pooled, pointwise encoder know *when* a state occurs.
+"""
+
+import torch
+import torch.nn.functional as F  # noqa: N812
+from huggingface_hub import PyTorchModelHubMixin
+from torch import Tensor, nn
+
+
+def resample(states: Tensor, length: int) -> Tensor:
+    """Linearly resample a (L, D) trajectory to (length, D); frame j sits at j·(L−1)/(length−1)."""
+    return F.interpolate(states.T.unsqueeze(0), size=length, mode="linear", align_corners=True)[0].T
+
+
+def to_episode_frame(t: Tensor, episode_length: int, length: int) -> Tensor:
+    """Map resampled (fractional) indices back to integer frames of an episode of `episode_length`."""
+    return (t * (episode_length - 1) / (length - 1)).round().long().clamp(0, episode_length - 1)
+
+
+def mlp(sizes: list[int]) -> nn.Sequential:
+    layers: list[nn.Module] = []
+    for i, (a, b) in enumerate(zip(sizes[:-1], sizes[1:], strict=True)):
+        layers.append(nn.Linear(a, b))
+        if i < len(sizes) - 2:
+            layers.append(nn.ReLU())
+    return nn.Sequential(*layers)
+
+
+class KSLNet(nn.Module, PyTorchModelHubMixin, library_name="lerobot_maxmi", tags=["maxmi", "key-states"]):
+    """(B, T, D) resampled trajectories -> (B, K, T) localization logits."""
+
+    def __init__(
+        self,
+        state_dim: int,
+        length: int,
+        num_concepts: int = 10,
+        embed_dim: int = 10,
+        encoder_dims: tuple[int, ...] = (256, 256, 256),
+        head_dims: tuple[int, ...] = (256, 128),
+    ):
+        super().__init__()
+        self.length = length
+        self.num_concepts = num_concepts
+        self.position = nn.Embedding(length, embed_dim)
+        self.concept = nn.Embedding(num_concepts, embed_dim)
+        self.encoder = mlp([state_dim + 2 * embed_dim, *encoder_dims])  # pointwise over time
+        self.head = mlp([encoder_dims[-1], *head_dims, length])
+        self.register_buffer("state_mean", torch.zeros(state_dim))
+        self.register_buffer("state_std", torch.ones(state_dim))
+
+    def set_state_statistics(self, mean: Tensor, std: Tensor) -> None:
+        """Standardize inputs with dataset statistics (saved with the weights)."""
+        self.state_mean.copy_(mean)
+        self.state_std.copy_(std.clamp_min(1e-6))
+
+    def forward(self, states: Tensor) -> Tensor:
+        batch, length, _ = states.shape
+        if length != self.length:
+            raise ValueError(
+                f"KSL-Net was built for trajectories resampled to {self.length} steps, got {length}"
+            )
+        k = self.num_concepts
+        x = ((states - self.state_mean) / self.state_std).unsqueeze(1).expand(-1, k, -1, -1)
+        position = self.position.weight.expand(batch, k, -1, -1)
+        concept = self.concept.weight[None, :, None, :].expand(batch, -1, length, -1)
+        features = self.encoder(torch.cat([x, position, concept], dim=-1))  # (B, K, T, C)
+        return self.head(F.relu(features.amax(dim=2)))  # (B, K, T)
