@@ -1,0 +1,140 @@
+"""Train KSL-Net with the MaxMI criterion and localize key frames in episodes."""
+
+import logging
+from dataclasses import dataclass, field
+
+import torch
+from torch import Tensor
+from tqdm import tqdm
+
+from lerobot_maxmi.discovery.ksl_net import KSLNet, resample, to_episode_frame
+from lerobot_maxmi.discovery.losses import (
+    diversity_loss,
+    maxmi_loss,
+    ordering_loss,
+    released_maxmi_loss,
+    soft_argmax,
+)
+from lerobot_maxmi.discovery.nms import key_frames
+from lerobot_maxmi.mi import ESTIMATORS, STATE_MI_MODES, load_estimator
+from lerobot_maxmi.mi.estimators import resolve_device
+
+OBJECTIVES = ("paper", "released")
+
+
+@dataclass
+class KSLNetArchitecture:
+    embed_dim: int = 10
+    encoder_dims: tuple[int, ...] = (256, 256, 256)
+    head_dims: tuple[int, ...] = (256, 128)
+
+
+@dataclass
+class DiscoveryConfig:
+    """How key states are discovered. Defaults follow the paper (objective="paper")."""
+
+    num_concepts: int = 10  # K
+    resample_length: int | None = None  # T; None = the shortest episode's length
+    delta_t: float = 2.0  # Δt, in resampled steps
+    diversity_weight: float = 1.0  # λ
+    # "paper": −Σ_k MI per concept + λ·pairwise diversity. "released": the authors' code
+    # (one pooled MI ×4, extrapolated s_t−Δt, ordering loss).
+    objective: str = "paper"
+    estimator: str = "infonet"
+    state_mi_mode: str = "per_dim"
+    lr: float = 1e-3
+    steps: int = 1000
+    batch_size: int = 64
+    seed: int = 0
+    device: str = "auto"
+    nms_radius: float = 0.05  # fraction of the episode length
+    append_final_frame: bool = True
+    model: KSLNetArchitecture = field(default_factory=KSLNetArchitecture)
+
+    def __post_init__(self):
+        if self.num_concepts < 1:
+            raise ValueError(f"num_concepts must be >= 1, got {self.num_concepts}")
+        choices = {"objective": OBJECTIVES, "estimator": tuple(ESTIMATORS), "state_mi_mode": STATE_MI_MODES}
+        for name, valid in choices.items():
+            if getattr(self, name) not in valid:
+                raise ValueError(f"unknown {name} {getattr(self, name)!r}; choose one of {', '.join(valid)}")
+
+
+def check_episodes(episodes: list[Tensor], num_concepts: int) -> None:
+    if not episodes:
+        raise ValueError("no episodes to discover key states in")
+    for i, states in enumerate(episodes):
+        if states.ndim != 2:
+            raise ValueError(
+                f"episode {i}: states must be (frames, state_dim), got shape {tuple(states.shape)}"
+            )
+        if len(states) < max(num_concepts, 2):
+            raise ValueError(
+                f"episode {i} has {len(states)} frames, fewer than the {num_concepts} key states asked for; "
+                "lower --discovery.num_concepts or drop short episodes"
+            )
+        if not torch.isfinite(states).all():
+            raise ValueError(f"episode {i} has NaN or inf states; clean the dataset before discovery")
+
+
+def stack_resampled(episodes: list[Tensor], length: int) -> Tensor:
+    return torch.stack([resample(states.float(), length) for states in episodes])
+
+
+def discovery_objective(net: KSLNet, states: Tensor, estimator, cfg: DiscoveryConfig) -> dict[str, Tensor]:
+    t_hat = soft_argmax(net(states))
+    if cfg.objective == "released":
+        mi_term = released_maxmi_loss(states, t_hat, estimator, cfg.state_mi_mode)
+        spread_term = ordering_loss(t_hat)
+    else:
+        mi_term, _ = maxmi_loss(states, t_hat, cfg.delta_t, estimator, cfg.state_mi_mode)
+        spread_term = diversity_loss(t_hat)
+    return {"loss": mi_term + cfg.diversity_weight * spread_term, "mi": -mi_term, "diversity": spread_term}
+
+
+def train_localizer(episodes: list[Tensor], cfg: DiscoveryConfig) -> KSLNet:
+    """Fit KSL-Net to the episodes' (frames, state_dim) state sequences."""
+    check_episodes(episodes, cfg.num_concepts)
+    torch.manual_seed(cfg.seed)
+    device = resolve_device(cfg.device)
+    length = cfg.resample_length or min(len(states) for states in episodes)
+    data = stack_resampled(episodes, length).to(device)
+    net = KSLNet(
+        data.shape[-1],
+        length,
+        cfg.num_concepts,
+        cfg.model.embed_dim,
+        cfg.model.encoder_dims,
+        cfg.model.head_dims,
+    ).to(device)
+    frames = data.flatten(0, 1)
+    net.set_state_statistics(frames.mean(0), frames.std(0))
+    estimator = load_estimator(cfg.estimator, device=device)
+    optimizer = torch.optim.Adam(net.parameters(), lr=cfg.lr)
+    generator = torch.Generator().manual_seed(cfg.seed)
+    batch_size = min(cfg.batch_size, len(episodes))
+    progress = tqdm(range(cfg.steps), desc="discover key states")
+    for _ in progress:
+        batch = data[torch.randperm(len(data), generator=generator)[:batch_size].to(device)]
+        terms = discovery_objective(net, batch, estimator, cfg)
+        optimizer.zero_grad(set_to_none=True)
+        terms["loss"].backward()
+        optimizer.step()
+        progress.set_postfix({k: f"{v.item():.3f}" for k, v in terms.items()})
+    logging.info("trained KSL-Net on %d episodes resampled to %d steps", len(episodes), length)
+    return net.eval()
+
+
+@torch.no_grad()
+def localize(net: KSLNet, episodes: list[Tensor], cfg: DiscoveryConfig) -> list[list[int]]:
+    """Key frames of each episode: localized concepts, NMS, and (optionally) the final frame."""
+    check_episodes(episodes, 1)
+    device = next(net.parameters()).device
+    probabilities = net(stack_resampled(episodes, net.length).to(device)).softmax(dim=-1)
+    t_hat = soft_argmax(probabilities.log()).cpu()
+    confidence = probabilities.amax(dim=-1).cpu()
+    result = []
+    for states, t, score in zip(episodes, t_hat, confidence, strict=True):
+        frames = to_episode_frame(t, len(states), net.length).tolist()
+        result.append(key_frames(frames, score.tolist(), len(states), cfg.nms_radius, cfg.append_final_frame))
+    return result
