@@ -19,6 +19,7 @@ from pathlib import Path
 
 import draccus
 import torch
+from safetensors.torch import load_model
 from tqdm import tqdm
 
 from lerobot_maxmi.mi.estimators import resolve_device
@@ -117,14 +118,14 @@ def pretrain(cfg: PretrainMIConfig) -> Path:
         raise FileExistsError(
             f"{checkpoint} exists; pass --resume=true to continue it or choose another --output_dir"
         )
+    resuming = cfg.resume and checkpoint.exists()
     model = InfoNet(**asdict(cfg.model)).to(device)
+    if resuming:
+        load_model(model, checkpoint / "model.safetensors", device=str(device))
     optimizer = torch.optim.AdamW(model.parameters(), lr=cfg.lr, weight_decay=1e-4)
     scheduler = torch.optim.lr_scheduler.LambdaLR(optimizer, warmup_cosine(cfg.warmup_steps, cfg.steps))
     start = 0
-    if cfg.resume and checkpoint.exists():
-        model = InfoNet.from_pretrained(checkpoint).to(device)
-        optimizer = torch.optim.AdamW(model.parameters(), lr=cfg.lr, weight_decay=1e-4)
-        scheduler = torch.optim.lr_scheduler.LambdaLR(optimizer, warmup_cosine(cfg.warmup_steps, cfg.steps))
+    if resuming:
         state = torch.load(checkpoint / TRAINING_STATE, map_location=device)
         optimizer.load_state_dict(state["optimizer"])
         scheduler.load_state_dict(state["scheduler"])
