@@ -58,3 +58,41 @@ def test_bad_episodes_are_rejected_clearly(episodes, message):
 def test_bad_config_is_rejected_clearly(field, value, message):
     with pytest.raises(ValueError, match=message):
         tiny_config(**{field: value})
+
+
+def random_walks_with_pauses(count=64, seed=0):
+    """Random walks that hold still for 6 frames around two planted times per episode.
+
+    While still, s_t = s_t−Δt in every demonstration, so MI(s_t; s_t−Δt) across demonstrations
+    peaks there: the structure MaxMI looks for (cf. the robot pausing while it grasps).
+    """
+    generator = torch.Generator().manual_seed(seed)
+    episodes, pauses = [], []
+    for _ in range(count):
+        length = int(torch.randint(50, 71, (1,), generator=generator))
+        steps = torch.randn(length, 3, generator=generator)
+        centres = [int(length * (low + 0.1 * torch.rand(1, generator=generator))) for low in (0.25, 0.65)]
+        for centre in centres:
+            steps[centre - 3 : centre + 3] = 0.0
+        episodes.append(torch.cumsum(steps, 0))
+        pauses.append(centres)
+    return episodes, pauses
+
+
+def test_maxmi_finds_planted_pauses():
+    episodes, pauses = random_walks_with_pauses()
+    cfg = DiscoveryConfig(
+        num_concepts=4,
+        steps=200,
+        append_final_frame=False,
+        model=KSLNetArchitecture(encoder_dims=(64, 64), head_dims=(64,)),
+    )
+    found = localize(train_localizer(episodes, cfg), episodes, cfg)
+    errors = torch.tensor(
+        [
+            [min(abs(frame - centre) for frame in frames) / len(states) for centre in centres]
+            for frames, centres, states in zip(found, pauses, episodes, strict=True)
+        ]
+    )  # (episodes, pauses): distance to the nearest discovered key frame, as a fraction of length
+    assert errors.median() <= 0.03, f"median error {errors.median():.3f} of the episode length"
+    assert (errors <= 0.05).float().mean() >= 0.85, f"within 5%: {(errors <= 0.05).float().mean(0).tolist()}"
