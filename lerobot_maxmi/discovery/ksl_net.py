@@ -39,10 +39,10 @@ class KSLNet(nn.Module, PyTorchModelHubMixin, library_name="lerobot_maxmi", tags
         self,
         state_dim: int,
         length: int,
-        num_concepts: int = 10,
-        embed_dim: int = 10,
-        encoder_dims: tuple[int, ...] = (256, 256, 256),
-        head_dims: tuple[int, ...] = (256, 128),
+        num_concepts: int,
+        embed_dim: int,
+        encoder_dims: tuple[int, ...],
+        head_dims: tuple[int, ...],
     ):
         super().__init__()
         self.length = length

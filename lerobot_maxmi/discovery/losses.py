@@ -33,19 +33,21 @@ def gather_frames(states: Tensor, index: Tensor) -> Tensor:
     return states.gather(1, index.unsqueeze(-1).expand(-1, -1, states.shape[-1]))
 
 
+def lerp_frames(states: Tensor, base: Tensor, t: Tensor) -> Tensor:
+    """The line through frames `base` and `base + 1`, evaluated at t; differentiable in t."""
+    weight = (t - base).unsqueeze(-1)
+    return (1 - weight) * gather_frames(states, base) + weight * gather_frames(states, base + 1)
+
+
 def interpolate_states(states: Tensor, t: Tensor) -> Tensor:
     """States at fractional indices t (B, K) of (B, T, D) trajectories -> (B, K, D); differentiable in t."""
     t = t.clamp(0, states.shape[1] - 1)
-    below = t.detach().floor().clamp(max=states.shape[1] - 2)
-    weight = (t - below).unsqueeze(-1)
-    return (1 - weight) * gather_frames(states, below) + weight * gather_frames(states, below + 1)
+    return lerp_frames(states, t.detach().floor().clamp(max=states.shape[1] - 2), t)
 
 
 def released_shifted_states(states: Tensor, t: Tensor, shift: int = RELEASED_SHIFT) -> Tensor:
     """The released code's gather: base frame ⌊t⌋+shift, weight t − base (an extrapolation for shift < 0)."""
-    base = t.detach().floor() + shift
-    weight = (t - base).unsqueeze(-1)
-    return (1 - weight) * gather_frames(states, base) + weight * gather_frames(states, base + 1)
+    return lerp_frames(states, t.detach().floor() + shift, t)
 
 
 def maxmi_loss(

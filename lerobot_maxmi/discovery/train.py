@@ -1,7 +1,7 @@
 """Train KSL-Net with the MaxMI criterion and localize key frames in episodes."""
 
 import logging
-from dataclasses import dataclass, field
+from dataclasses import asdict, dataclass, field
 
 import torch
 from torch import Tensor
@@ -24,6 +24,8 @@ OBJECTIVES = ("paper", "released")
 
 @dataclass
 class KSLNetArchitecture:
+    """Layer sizes of `KSLNet`."""
+
     embed_dim: int = 10
     encoder_dims: tuple[int, ...] = (256, 256, 256)
     head_dims: tuple[int, ...] = (256, 128)
@@ -99,14 +101,7 @@ def train_localizer(episodes: list[Tensor], cfg: DiscoveryConfig) -> KSLNet:
     device = resolve_device(cfg.device)
     length = cfg.resample_length or min(len(states) for states in episodes)
     data = stack_resampled(episodes, length).to(device)
-    net = KSLNet(
-        data.shape[-1],
-        length,
-        cfg.num_concepts,
-        cfg.model.embed_dim,
-        cfg.model.encoder_dims,
-        cfg.model.head_dims,
-    ).to(device)
+    net = KSLNet(data.shape[-1], length, cfg.num_concepts, **asdict(cfg.model)).to(device)
     frames = data.flatten(0, 1)
     net.set_state_statistics(frames.mean(0), frames.std(0))
     estimator = load_estimator(cfg.estimator, device=device)
@@ -130,9 +125,9 @@ def localize(net: KSLNet, episodes: list[Tensor], cfg: DiscoveryConfig) -> list[
     """Key frames of each episode: localized concepts, NMS, and (optionally) the final frame."""
     check_episodes(episodes, 1)
     device = next(net.parameters()).device
-    probabilities = net(stack_resampled(episodes, net.length).to(device)).softmax(dim=-1)
-    t_hat = soft_argmax(probabilities.log()).cpu()
-    confidence = probabilities.amax(dim=-1).cpu()
+    logits = net(stack_resampled(episodes, net.length).to(device))
+    t_hat = soft_argmax(logits).cpu()
+    confidence = logits.softmax(dim=-1).amax(dim=-1).cpu()
     result = []
     for states, t, score in zip(episodes, t_hat, confidence, strict=True):
         frames = to_episode_frame(t, len(states), net.length).tolist()

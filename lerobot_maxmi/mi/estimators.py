@@ -53,16 +53,11 @@ class GaussianCopulaEstimator(MIEstimator):
     """MI of the Gaussian copula: normal scores of the ranks, then −½ log(1 − ρ²)."""
 
     def estimate(self, x: Tensor, y: Tensor) -> Tensor:
-        zx, zy = (normal_scores(rank_normalize(t)) for t in (x, y))
+        zx, zy = (torch.special.ndtri(rank_normalize(t)) for t in (x, y))  # normal scores
         zx, zy = zx - zx.mean(1, keepdim=True), zy - zy.mean(1, keepdim=True)
         denominator = (zx.square().sum(1) * zy.square().sum(1)).sqrt().clamp_min(1e-12)
         rho = (zx * zy).sum(1) / denominator
         return -0.5 * torch.log1p(-rho.square().clamp(max=1 - 1e-6))
-
-
-def normal_scores(u: Tensor) -> Tensor:
-    """Standard-normal quantiles of values in (0, 1)."""
-    return torch.special.ndtri(u)
 
 
 class InfoNetEstimator(MIEstimator):
@@ -77,7 +72,7 @@ class InfoNetEstimator(MIEstimator):
     def estimate(self, x: Tensor, y: Tensor) -> Tensor:
         device = next(self.model.parameters()).device
         u, v = (rank_normalize(t.to(device=device, dtype=torch.float32)) for t in (x, y))
-        return self.model(u, v, head=self.head).to(x.dtype)
+        return self.model(u, v, head=self.head).to(device=x.device, dtype=x.dtype)
 
 
 def load_infonet(pretrained: str | None = None, device: str | torch.device | None = None) -> InfoNet:
