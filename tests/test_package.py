@@ -7,16 +7,18 @@ from tests.conftest import STATE_DIM
 
 DISCOVER = """
 import sys
+from lerobot.envs.configs import EnvConfig
 from lerobot.utils.import_utils import register_third_party_plugins
 register_third_party_plugins()
-print("lerobot_policy_maxmi" in sys.modules, "lerobot_maxmi" in sys.modules)
+env_types = EnvConfig.get_known_choices()
+print("lerobot_policy_maxmi" in sys.modules, "lerobot_maxmi" in sys.modules, "maniskill" in env_types)
 """
 
 
 def test_lerobot_plugin_discovery_imports_our_package():
     result = subprocess.run([sys.executable, "-c", DISCOVER], capture_output=True, text=True, timeout=300)
     assert result.returncode == 0, result.stderr
-    assert result.stdout.split() == ["True", "True"], result.stdout + result.stderr
+    assert result.stdout.split() == ["True", "True", "True"], result.stdout + result.stderr
 
 
 def test_state_dataset_fixture_round_trips(state_dataset):

@@ -1,0 +1,71 @@
+"""A ManiSkill task as one LeRobot evaluation sub-env (the `maniskill` env type builds these)."""
+
+import gymnasium as gym
+import numpy as np
+from gymnasium import spaces
+
+from lerobot_maxmi.envs.maniskill_sim import (
+    has_render_device,
+    make_sim_env,
+    restrict_faucet_models,
+    subgoal_flags,
+    task_spec,
+)
+from lerobot_maxmi.envs.milestones import MILESTONES_KEY
+
+
+class ManiSkillGymEnv(gym.Env):
+    """One CPU ManiSkill env with the observation and info LeRobot's evaluation reads.
+
+    Observation `{"agent_pos": float32 state}`; info `is_success` and, under "milestones", the
+    task's sub-goal flags at this step. Renders RGB frames where a Vulkan device exists; without
+    one the simulation is physics-only and `render_mode` is None.
+    """
+
+    def __init__(
+        self,
+        task: str,
+        control_mode: str = "pd_ee_delta_pose",
+        obs_mode: str = "state",
+        max_episode_steps: int | None = None,
+        fps: int = 20,
+        model_ids: list[str] | None = None,
+    ):
+        super().__init__()
+        spec = task_spec(task)
+        render_mode = "rgb_array" if has_render_device() else None
+        self._sim = make_sim_env(task, control_mode, obs_mode, max_episode_steps, render_mode)
+        if model_ids is not None:
+            restrict_faucet_models(self._sim, model_ids)
+        self.task = task
+        self.task_description = spec.description
+        self.render_mode = self._sim.render_mode
+        self._max_episode_steps = max_episode_steps or spec.episode_length
+        self.metadata = {"render_modes": ["rgb_array"], "render_fps": fps}
+        self.action_space = self._sim.action_space
+        state_shape = self._sim.observation_space.shape
+        self.observation_space = spaces.Dict(
+            {"agent_pos": spaces.Box(-np.inf, np.inf, shape=state_shape, dtype=np.float32)}
+        )
+
+    def reset(self, *, seed: int | None = None, options: dict | None = None):
+        # `options` carries LeRobot's rollout markers, which mean nothing to ManiSkill.
+        super().reset(seed=seed)
+        state, _ = self._sim.reset(seed=seed)
+        return self._observation(state), {"is_success": False}
+
+    def step(self, action: np.ndarray):
+        state, reward, terminated, truncated, sim_info = self._sim.step(action)
+        flags = subgoal_flags(self._sim, sim_info)
+        info = {"is_success": flags["success"], MILESTONES_KEY: flags}
+        return self._observation(state), float(reward), bool(terminated), bool(truncated), info
+
+    def render(self) -> np.ndarray | None:
+        return self._sim.render() if self.render_mode is not None else None
+
+    def close(self) -> None:
+        self._sim.close()
+
+    @staticmethod
+    def _observation(state: np.ndarray) -> dict[str, np.ndarray]:
+        return {"agent_pos": np.asarray(state, dtype=np.float32)}
