@@ -12,6 +12,8 @@ import torch.nn.functional as F  # noqa: N812
 from huggingface_hub import PyTorchModelHubMixin
 from torch import Tensor, nn
 
+EPISODES_PER_FORWARD = 64  # bounds the (episodes, K, T, hidden) activations of one forward pass
+
 
 def resample(states: Tensor, length: int) -> Tensor:
     """Linearly resample a (L, D) trajectory to (length, D); frame j sits at j·(L−1)/(length−1)."""
@@ -21,6 +23,17 @@ def resample(states: Tensor, length: int) -> Tensor:
 def to_episode_frame(t: Tensor, episode_length: int, length: int) -> Tensor:
     """Map resampled (fractional) indices back to integer frames of an episode of `episode_length`."""
     return (t * (episode_length - 1) / (length - 1)).round().long().clamp(0, episode_length - 1)
+
+
+def stack_resampled(episodes: list[Tensor], length: int) -> Tensor:
+    """(E, length, D): every (L_i, D) episode resampled to a common length."""
+    return torch.stack([resample(states.float(), length) for states in episodes])
+
+
+def soft_argmax(logits: Tensor) -> Tensor:
+    """(B, K, T) logits -> (B, K) expected indices t̂ = Σ_t t · p_t."""
+    steps = torch.arange(logits.shape[-1], device=logits.device, dtype=logits.dtype)
+    return logits.softmax(dim=-1) @ steps
 
 
 def mlp(sizes: list[int]) -> nn.Sequential:
@@ -71,3 +84,17 @@ class KSLNet(nn.Module, PyTorchModelHubMixin, library_name="lerobot_maxmi", tags
         concept = self.concept.weight[None, :, None, :].expand(batch, -1, length, -1)
         features = self.encoder(torch.cat([x, position, concept], dim=-1))  # (B, K, T, C)
         return self.head(F.relu(features.amax(dim=2)))  # (B, K, T)
+
+    @torch.no_grad()
+    def locate(self, episodes: list[Tensor]) -> tuple[Tensor, Tensor]:
+        """Each concept's position t̂ on the resampled axis and its confidence (peak probability).
+
+        Returns two (E, K) CPU tensors for the (L_i, D) `episodes`.
+        """
+        positions, confidences = [], []
+        for start in range(0, len(episodes), EPISODES_PER_FORWARD):
+            chunk = stack_resampled(episodes[start : start + EPISODES_PER_FORWARD], self.length)
+            logits = self(chunk.to(self.state_mean.device))
+            positions.append(soft_argmax(logits).cpu())
+            confidences.append(logits.softmax(dim=-1).amax(dim=-1).cpu())
+        return torch.cat(positions), torch.cat(confidences)

@@ -14,17 +14,20 @@ import torch
 import torch.nn.functional as F  # noqa: N812
 from torch import Tensor
 
+from lerobot_maxmi.discovery.ksl_net import soft_argmax
 from lerobot_maxmi.mi import MIEstimator, state_mi
+
+__all__ = [
+    "diversity_loss",
+    "maxmi_loss",
+    "ordering_loss",
+    "released_maxmi_loss",
+    "soft_argmax",  # lives with KSL-Net (it reads the net's logits); re-exported for the loss code
+]
 
 RELEASED_MI_WEIGHT = 4.0
 RELEASED_SHIFT = -2
 RELEASED_ORDER_BETA = 0.3
-
-
-def soft_argmax(logits: Tensor) -> Tensor:
-    """(B, K, T) logits -> (B, K) expected indices t̂ = Σ_t t · p_t."""
-    steps = torch.arange(logits.shape[-1], device=logits.device, dtype=logits.dtype)
-    return logits.softmax(dim=-1) @ steps
 
 
 def gather_frames(states: Tensor, index: Tensor) -> Tensor:

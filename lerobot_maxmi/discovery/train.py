@@ -7,17 +7,13 @@ import torch
 from torch import Tensor
 from tqdm import tqdm
 
-from lerobot_maxmi.discovery.ksl_net import KSLNet, resample, to_episode_frame
-from lerobot_maxmi.discovery.losses import (
-    diversity_loss,
-    maxmi_loss,
-    ordering_loss,
-    released_maxmi_loss,
-    soft_argmax,
-)
-from lerobot_maxmi.discovery.nms import key_frames
+from lerobot_maxmi.discovery.ksl_net import KSLNet, soft_argmax, stack_resampled, to_episode_frame
+from lerobot_maxmi.discovery.losses import diversity_loss, maxmi_loss, ordering_loss, released_maxmi_loss
+from lerobot_maxmi.discovery.nms import key_frames, shared_concepts
+from lerobot_maxmi.discovery.processor import MaxmiDiscoveryStep
 from lerobot_maxmi.mi import ESTIMATORS, STATE_MI_MODES, load_estimator
 from lerobot_maxmi.mi.estimators import resolve_device
+from lerobot_maxmi.mi.normalize import MIN_SAMPLES
 
 OBJECTIVES = ("paper", "released")
 
@@ -51,6 +47,8 @@ class DiscoveryConfig:
     device: str = "auto"
     nms_radius: float = 0.05  # fraction of the episode length
     append_final_frame: bool = True
+    # A saved localizer (directory or hub repo id) to annotate with instead of training one.
+    pretrained_path: str | None = None
     model: KSLNetArchitecture = field(default_factory=KSLNetArchitecture)
 
     def __post_init__(self):
@@ -79,10 +77,6 @@ def check_episodes(episodes: list[Tensor], num_concepts: int) -> None:
             raise ValueError(f"episode {i} has NaN or inf states; clean the dataset before discovery")
 
 
-def stack_resampled(episodes: list[Tensor], length: int) -> Tensor:
-    return torch.stack([resample(states.float(), length) for states in episodes])
-
-
 def discovery_objective(net: KSLNet, states: Tensor, estimator, cfg: DiscoveryConfig) -> dict[str, Tensor]:
     t_hat = soft_argmax(net(states))
     if cfg.objective == "released":
@@ -97,6 +91,11 @@ def discovery_objective(net: KSLNet, states: Tensor, estimator, cfg: DiscoveryCo
 def train_localizer(episodes: list[Tensor], cfg: DiscoveryConfig) -> KSLNet:
     """Fit KSL-Net to the episodes' (frames, state_dim) state sequences."""
     check_episodes(episodes, cfg.num_concepts)
+    if min(cfg.batch_size, len(episodes)) < MIN_SAMPLES:
+        raise ValueError(
+            f"MaxMI estimates MI across episodes and needs batches of at least {MIN_SAMPLES}; got "
+            f"{len(episodes)} episodes and --discovery.batch_size={cfg.batch_size}"
+        )
     torch.manual_seed(cfg.seed)
     device = resolve_device(cfg.device)
     length = cfg.resample_length or min(len(states) for states in episodes)
@@ -120,16 +119,29 @@ def train_localizer(episodes: list[Tensor], cfg: DiscoveryConfig) -> KSLNet:
     return net.eval()
 
 
-@torch.no_grad()
 def localize(net: KSLNet, episodes: list[Tensor], cfg: DiscoveryConfig) -> list[list[int]]:
-    """Key frames of each episode: localized concepts, NMS, and (optionally) the final frame."""
+    """Key frames of each episode: localized concepts, per-episode NMS, and (optionally) the final frame."""
     check_episodes(episodes, 1)
-    device = next(net.parameters()).device
-    logits = net(stack_resampled(episodes, net.length).to(device))
-    t_hat = soft_argmax(logits).cpu()
-    confidence = logits.softmax(dim=-1).amax(dim=-1).cpu()
+    t_hat, confidence = net.locate(episodes)
     result = []
     for states, t, score in zip(episodes, t_hat, confidence, strict=True):
         frames = to_episode_frame(t, len(states), net.length).tolist()
         result.append(key_frames(frames, score.tolist(), len(states), cfg.nms_radius, cfg.append_final_frame))
     return result
+
+
+def fit_localizer(episodes: list[Tensor], cfg: DiscoveryConfig) -> MaxmiDiscoveryStep:
+    """Train KSL-Net, keep the concepts that are distinct dataset-wide, and wrap both as a processor step.
+
+    Each concept's typical position is its median t̂ over the episodes (a fraction of the
+    episode); NMS on those positions, scored by mean confidence, drops duplicate concepts once
+    for the whole dataset, so every episode gets the same K_out = kept + final key states.
+    """
+    net = train_localizer(episodes, cfg)
+    t_hat, confidence = net.locate(episodes)
+    fractions = (t_hat / (net.length - 1)).median(dim=0).values
+    concepts = shared_concepts(
+        fractions.tolist(), confidence.mean(dim=0).tolist(), cfg.nms_radius, cfg.append_final_frame
+    )
+    logging.info("kept %d of %d concepts dataset-wide: %s", len(concepts), cfg.num_concepts, concepts)
+    return MaxmiDiscoveryStep.from_net(net, concepts, cfg.append_final_frame, **asdict(cfg.model))
