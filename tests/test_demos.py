@@ -7,10 +7,11 @@ import h5py
 import numpy as np
 import pytest
 
+from lerobot_maxmi.demos import record as record_module
 from lerobot_maxmi.demos.convert import ConvertConfig, convert
 from lerobot_maxmi.demos.experts import make_expert
 from lerobot_maxmi.demos.record import RecordDemosConfig, record
-from lerobot_maxmi.demos.rollout import key_frame_names, replay, run_expert
+from lerobot_maxmi.demos.rollout import Attempt, key_frame_names, replay, run_expert
 from lerobot_maxmi.envs.configs import ManiSkillEnvConfig
 from lerobot_maxmi.envs.maniskill_sim import make_sim_env, subgoal_flags, task_spec
 from lerobot_maxmi.episode_metadata import (
@@ -116,6 +117,23 @@ def test_dataset_round_trip(pick_dataset):
 def test_refuses_to_overwrite(pick_dataset):
     with pytest.raises(FileExistsError, match="--overwrite=true"):
         record(pick_dataset)
+
+
+class AlwaysFailing:
+    fps, task, robot_type = 20, "PickCube-v1", "panda"
+
+    def attempt(self, seed: int) -> Attempt:
+        return Attempt(seed, 5, failure="cube out of reach")
+
+
+def test_no_successful_attempt_names_the_failure_and_writes_nothing(monkeypatch, tmp_path):
+    monkeypatch.setitem(record_module.DEMO_SOURCES, "maniskill", lambda env_cfg, cfg: AlwaysFailing())
+    cfg = RecordDemosConfig(
+        env=ManiSkillEnvConfig(), repo_id="local/none", root=tmp_path / "none", num_episodes=2, max_attempts=3
+    )
+    with pytest.raises(RuntimeError, match=r"None of 3 attempts succeeded.*seed 2: cube out of reach"):
+        record(cfg)
+    assert list(tmp_path.iterdir()) == []  # neither the dataset nor its staging folder is left
 
 
 def test_resume_adds_new_seeds_only(pick_dataset, tmp_path):

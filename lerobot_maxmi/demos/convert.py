@@ -35,9 +35,8 @@ logger = logging.getLogger(__name__)
 
 @dataclass
 class ConvertConfig:
-    path: (
-        Path  # maniskill_h5: trajectory.h5 (with its .json); relay_kitchen: a directory; d4rl_kitchen: .hdf5
-    )
+    # maniskill_h5: trajectory.h5 (with its .json); relay_kitchen: a directory; d4rl_kitchen: .hdf5
+    path: Path
     repo_id: str
     format: str = "maniskill_h5"
     root: Path | None = None  # default: $HF_LEROBOT_HOME/<repo_id>

@@ -4,7 +4,8 @@ Like the relay-kitchen data, each attempt chains `TASKS_PER_DEMO` distinct subta
 order drawn from the expert's repertoire (within `--env.tasks_to_complete`). An attempt succeeds when
 every subtask of its chain is complete within `DEMO_MAX_STEPS` (longer than the 280-step evaluation
 limit: the expert is slower than a teleoperator). Key frames: the first frame at which each subtask
-is complete, named after it, in completion order, then the final frame (conventions: `episode.py`).
+is complete, named after it, in completion order; the last subtask completes on the final frame,
+which is the last key frame (conventions: `episode.py`).
 """
 
 import numpy as np
@@ -88,7 +89,9 @@ def run_kitchen_expert(env: FrankaKitchenGymEnv, seed: int, source: KitchenDemoS
         missing = [task for task in chain if task not in completed_at]
         failure = f"{missing} not completed within {max_steps} steps (chain {chain})"
         return Attempt(seed, length, failure=failure)
-    order = sorted(completed_at, key=completed_at.get)
+    # The subtask completed last is the success state, i.e. the final frame, which stands for it
+    # (as for the ManiSkill tasks' success sub-goal).
+    order = [task for task in sorted(completed_at, key=completed_at.get) if completed_at[task] < length - 1]
     episode = Episode(
         states=np.stack(states),
         actions=np.stack(actions),

@@ -45,7 +45,7 @@ class RecordDemosConfig:
     action_noise: float = 0.0  # std of Gaussian noise on the normalized arm actions
     randomize_expert: bool = True  # draw the expert's heights, gains and grasp offset per episode
     num_workers: int = 1  # processes generating attempts; the main process writes the dataset
-    max_attempts: int | None = None  # give up after this many attempts; default 2 x episodes + 10
+    max_attempts: int | None = None  # give up after this many attempts; default 2 x remaining episodes + 10
     resume: bool = False
     overwrite: bool = False
     push_to_hub: bool = False
@@ -148,10 +148,12 @@ def _record_into(writer: DemoDatasetWriter, attempts: Iterator[Attempt], target:
     """Write successful attempts until `target` episodes; publish the dataset, also on Ctrl-C."""
     progress = tqdm(total=target, initial=writer.num_episodes, unit="demo")
     tried = succeeded = 0
+    last_failure = ""
     try:
         for attempt in attempts:
             tried += 1
             if attempt.episode is None:
+                last_failure = f"seed {attempt.seed}: {attempt.failure}"
                 logger.debug("Seed %d failed: %s", attempt.seed, attempt.failure)
             else:
                 writer.add(attempt.episode)
@@ -170,6 +172,13 @@ def _record_into(writer: DemoDatasetWriter, attempts: Iterator[Attempt], target:
     finally:
         attempts.close()
         progress.close()
+    if writer.num_episodes == 0:
+        writer.discard()
+        raise RuntimeError(
+            f"None of {tried} attempts succeeded, so nothing was written (last failure, {last_failure}). "
+            "Check the task and control mode the scripted experts support (lerobot_maxmi/demos/experts.py) "
+            "or raise --max_attempts."
+        )
     _publish(writer, tried, succeeded)
     if writer.num_episodes < target:
         raise RuntimeError(
