@@ -35,6 +35,7 @@ class DiscoveryConfig:
     resample_length: int | None = None  # T; None = the shortest episode's length
     delta_t: float = 2.0  # Δt, in resampled steps
     diversity_weight: float = 1.0  # λ
+    mi_weight: float = 1.0  # weight of the MaxMI term (0 = diversity only, the paper's Table 5 ablation)
     # "paper": −Σ_k MI per concept + λ·pairwise diversity. "released": the authors' code
     # (one pooled MI ×4, extrapolated s_t−Δt, ordering loss).
     objective: str = "paper"
@@ -85,7 +86,8 @@ def discovery_objective(net: KSLNet, states: Tensor, estimator, cfg: DiscoveryCo
     else:
         mi_term, _ = maxmi_loss(states, t_hat, cfg.delta_t, estimator, cfg.state_mi_mode)
         spread_term = diversity_loss(t_hat)
-    return {"loss": mi_term + cfg.diversity_weight * spread_term, "mi": -mi_term, "diversity": spread_term}
+    loss = cfg.mi_weight * mi_term + cfg.diversity_weight * spread_term
+    return {"loss": loss, "mi": -mi_term, "diversity": spread_term}
 
 
 def train_localizer(episodes: list[Tensor], cfg: DiscoveryConfig) -> KSLNet:

@@ -1,0 +1,236 @@
+"""The paper's tables, one cell at a time, through the real CLIs; prints (and writes) markdown tables.
+
+    .venv/bin/python benchmarks/run_table.py --profile=cpu --tasks='[PickCube-v1]' \
+        --variants='[maxmi,ground_truth,last_state,none]' --seeds='[0]'
+
+A cell is (task, variant, seed) under a profile: demos -> lerobot-maxmi-discover -> lerobot-train ->
+lerobot-eval on seen initial configurations (the demos' own seeds) and unseen ones (seeds from
+1,000,000 on). Every finished cell is stored in `<output_dir>/results.json` under its full
+configuration; a cell already there is skipped, so an interrupted run continues where it stopped.
+A cell whose command fails is not stored. The tables (`<output_dir>/tables.md`) are regenerated
+from the JSON after every cell, and on their own with `--run=false`.
+"""
+
+import json
+import os
+import platform
+import statistics
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import draccus
+import torch
+
+from lerobot_maxmi.pipeline import annotate, evaluate_policy, rates, record_demos, timed, train_policy
+
+UNSEEN_SEED = 1_000_000  # far above any demo seed
+
+
+@dataclass(frozen=True)
+class Variant:
+    """How a cell gets its key states: a discovery selector (None: no key states) and its flags."""
+
+    selector: str | None
+    discovery_flags: tuple[str, ...] = ()
+
+    @property
+    def policy_type(self) -> str:
+        return "cotpc_maxmi" if self.selector == "maxmi" else "cotpc"
+
+
+VARIANTS = {
+    "maxmi": Variant("maxmi"),
+    "maxmi_released": Variant("maxmi", ("--discovery.objective=released",)),
+    "maxmi_mi_only": Variant("maxmi", ("--discovery.diversity_weight=0",)),
+    "maxmi_diversity_only": Variant("maxmi", ("--discovery.mi_weight=0",)),
+    "ground_truth": Variant("ground_truth"),
+    "last_state": Variant("last_state"),
+    "awe": Variant("awe"),
+    "uniform": Variant("uniform"),
+    "none": Variant(None),
+}
+
+
+@dataclass(frozen=True)
+class Profile:
+    num_demos: int
+    discovery_steps: int
+    num_concepts: int
+    train_steps: int
+    batch_size: int
+    context_length: int
+    eval_episodes: int
+    device: str
+
+
+PROFILES = {
+    # About 30 minutes of training per cell on 2 CPU cores (PickCube, with key states).
+    "cpu": Profile(100, 1000, 4, 2500, 64, 10, 100, "cpu"),
+    # The paper's context length and batch size on a GPU.
+    "gpu": Profile(500, 3000, 10, 50_000, 256, 60, 100, "cuda"),
+}
+
+
+@dataclass
+class TableConfig:
+    profile: str = "cpu"
+    tasks: list[str] = field(default_factory=lambda: ["PickCube-v1"])
+    variants: list[str] = field(default_factory=lambda: ["maxmi", "ground_truth", "last_state", "none"])
+    seeds: list[int] = field(default_factory=lambda: [0])
+    output_dir: Path = Path("outputs/tables")
+    run: bool = True  # false: only regenerate the tables from results.json
+
+    def __post_init__(self):
+        for name, chosen, valid in [
+            ("profile", [self.profile], PROFILES),
+            ("variant", self.variants, VARIANTS),
+        ]:
+            unknown = [value for value in chosen if value not in valid]
+            if unknown:
+                raise ValueError(f"unknown {name} {unknown}; choose from {', '.join(valid)}")
+
+
+def cell_config(task: str, variant: str, seed: int, profile: Profile) -> dict:
+    return {"task": task, "variant": variant, "seed": seed, **asdict(profile)}
+
+
+def cell_key(config: dict) -> str:
+    return json.dumps(config, sort_keys=True)
+
+
+def run_cell(config: dict, profile: Profile, out: Path) -> dict:
+    """One cell through the CLIs; returns its success / sub-task rates and the wall time per stage."""
+    task, seed = config["task"], config["seed"]
+    variant, timings = VARIANTS[config["variant"]], {}
+    cell = out / "cells" / f"{task}_{config['variant']}_seed{seed}"
+
+    demos = out / "demos" / f"{task}_{profile.num_demos}"  # every variant and seed trains on these
+    timed(timings, "demos", record_demos, task, profile.num_demos, demos)
+    dataset = demos
+    if variant.selector:
+        dataset = cell / "dataset"
+        discovery = (
+            f"--discovery.num_concepts={profile.num_concepts}",
+            f"--discovery.steps={profile.discovery_steps}",
+            f"--discovery.seed={seed}",
+            f"--discovery.device={profile.device}",
+            *variant.discovery_flags,
+        )
+        timed(timings, "discovery", annotate, demos, dataset, variant.selector, *discovery)
+    train_flags = (
+        f"--policy.context_length={profile.context_length}",
+        f"--policy.device={profile.device}",
+        f"--steps={profile.train_steps}",
+        f"--batch_size={profile.batch_size}",
+        f"--save_freq={profile.train_steps}",
+        f"--log_freq={max(profile.train_steps // 10, 1)}",
+        f"--seed={seed}",
+    )
+    checkpoint = timed(
+        timings, "training", train_policy, variant.policy_type, dataset, cell / "train", *train_flags
+    )
+    # Seen: the demos' own initial configurations (their seeds start at 0); unseen: fresh seeds.
+    splits = {
+        "seen": (0, min(profile.eval_episodes, profile.num_demos)),
+        "unseen": (UNSEEN_SEED, profile.eval_episodes),
+    }
+    eval_flags = (f"--policy.device={profile.device}", "--eval.batch_size=1")
+    result = {"config": config, "wall_s": timings}
+    for split, (first_seed, episodes) in splits.items():
+        overall = timed(
+            timings,
+            f"eval_{split}",
+            evaluate_policy,
+            checkpoint,
+            task,
+            cell / f"eval_{split}",
+            episodes,
+            first_seed,
+            *eval_flags,
+        )
+        result[split] = rates(overall)
+    return result
+
+
+def load_results(path: Path) -> dict:
+    return json.loads(path.read_text()) if path.exists() else {}
+
+
+def save_text(path: Path, text: str) -> None:
+    """Write atomically, so an interrupted run never leaves a truncated file."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_suffix(path.suffix + ".tmp")
+    tmp.write_text(text)
+    os.replace(tmp, path)
+
+
+def mean_spread(values: list[float]) -> str:
+    if len(values) == 1:
+        return f"{values[0]:.0f}"
+    return f"{statistics.mean(values):.0f} ± {statistics.stdev(values):.0f}"
+
+
+def machine() -> str:
+    gpu = torch.cuda.get_device_name(0) if torch.cuda.is_available() else "no GPU"
+    return f"{platform.machine()}, {os.cpu_count()} cores, {gpu}"
+
+
+def variant_row(variant: str, cells: list[dict], rate_names: list[str]) -> str:
+    def both(name: str) -> str:
+        seen = mean_spread([cell["seen"][name] for cell in cells])
+        return f"{seen} / {mean_spread([cell['unseen'][name] for cell in cells])}"
+
+    return "| " + " | ".join([variant, str(len(cells)), *map(both, rate_names)]) + " |"
+
+
+def markdown_tables(results: dict) -> str:
+    """One table per (task, profile): a row per variant; success and sub-task rates, seen / unseen."""
+    groups: dict[tuple[str, str], dict[str, list[dict]]] = {}
+    for cell in results.values():
+        sizes = {k: v for k, v in cell["config"].items() if k not in ("task", "variant", "seed")}
+        group = groups.setdefault((cell["config"]["task"], json.dumps(sizes)), {})
+        group.setdefault(cell["config"]["variant"], []).append(cell)
+    sections = [f"Machine: {machine()}"]
+    for (task, sizes), by_variant in sorted(groups.items()):
+        rate_names = list(next(iter(by_variant.values()))[0]["unseen"])
+        header = ["variant", "seeds", *(f"{name} % (seen / unseen)" for name in rate_names)]
+        lines = [
+            f"### {task}",
+            ", ".join(f"{key} {value}" for key, value in json.loads(sizes).items()),
+            "| " + " | ".join(header) + " |\n|" + "---|" * len(header),
+        ]
+        rows = [variant_row(variant, cells, rate_names) for variant, cells in sorted(by_variant.items())]
+        sections.append("\n\n".join(lines[:2]) + "\n\n" + "\n".join([lines[2], *rows]))
+    return "\n\n".join(sections)
+
+
+def run_table(cfg: TableConfig) -> str:
+    """Run the cells not in results.json yet (storing each as it finishes); returns the tables."""
+    results_path, tables_path = cfg.output_dir / "results.json", cfg.output_dir / "tables.md"
+    results = load_results(results_path)
+    profile = PROFILES[cfg.profile]
+    configs = [
+        cell_config(task, variant, seed, profile)
+        for task in cfg.tasks
+        for variant in cfg.variants
+        for seed in cfg.seeds
+    ]
+    for config in configs if cfg.run else []:
+        if cell_key(config) in results:
+            print(f"done already: {config['task']} {config['variant']} seed {config['seed']}")
+            continue
+        results[cell_key(config)] = run_cell(config, profile, cfg.output_dir)
+        save_text(results_path, json.dumps(results, indent=1))
+        save_text(tables_path, markdown_tables(results) + "\n")
+    tables = markdown_tables(results)
+    save_text(tables_path, tables + "\n")
+    return tables
+
+
+@draccus.wrap()
+def main(cfg: TableConfig) -> None:
+    print(f"\n{run_table(cfg)}\n\n(written to {cfg.output_dir / 'tables.md'})")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,102 @@
+"""The main job's stages through the real command-line tools, shared by `make demo` and the benchmarks.
+
+    lerobot-maxmi-demos -> lerobot-maxmi-discover -> lerobot-train -> lerobot-eval
+
+Each stage is one console script run in a subprocess from this environment, exactly as a user would
+type it, so what the demo and the result tables measure is what users get.
+"""
+
+import json
+import os
+import shutil
+import subprocess
+import sys
+import time
+from collections.abc import Callable
+from pathlib import Path
+
+# Selector name for "no key states": the policy trains on the plain demos (K = 0).
+NO_KEY_STATES = "none"
+
+
+def timed(timings: dict[str, float], stage: str, work: Callable, *args):
+    """work(*args), with its wall time in seconds stored as timings[stage]."""
+    start = time.perf_counter()
+    value = work(*args)
+    timings[stage] = round(time.perf_counter() - start, 1)
+    return value
+
+
+def run_tool(name: str, *args: str) -> None:
+    """Run one of the installed console scripts (ours or LeRobot's), failing loudly if it fails."""
+    command = [str(Path(sys.executable).parent / name), *args]
+    print(f"\n$ {name} {' '.join(args)}", flush=True)
+    subprocess.run(command, check=True)
+
+
+def record_demos(task: str, num_episodes: int, root: Path, seed: int = 0) -> None:
+    """Scripted ManiSkill demos at `root`, topped up (never duplicated) when some are already there."""
+    run_tool(
+        "lerobot-maxmi-demos",
+        "--env.type=maniskill",
+        f"--env.task={task}",
+        f"--num_episodes={num_episodes}",
+        f"--repo_id=local/{root.name}",
+        f"--root={root}",
+        f"--seed={seed}",
+        f"--resume={str(root.exists()).lower()}",
+    )
+
+
+def annotate(source: Path, output: Path, selector: str, *discovery_flags: str) -> None:
+    """Key states from `selector` written into a new dataset at `output` (replacing an old one)."""
+    run_tool(
+        "lerobot-maxmi-discover",
+        f"--dataset.repo_id=local/{source.name}",
+        f"--dataset.root={source}",
+        f"--output.repo_id=local/{output.name}",
+        f"--output.root={output}",
+        f"--selector={selector}",
+        *discovery_flags,
+        "--overwrite=true",
+    )
+
+
+def train_policy(policy_type: str, dataset: Path, run_dir: Path, *flags: str) -> Path:
+    """Train with lerobot-train; returns the last checkpoint's pretrained_model directory."""
+    shutil.rmtree(run_dir, ignore_errors=True)  # lerobot-train refuses an existing run directory
+    run_tool(
+        "lerobot-train",
+        f"--policy.type={policy_type}",
+        "--policy.push_to_hub=false",
+        f"--dataset.repo_id=local/{dataset.name}",
+        f"--dataset.root={dataset}",
+        f"--num_workers={min(4, os.cpu_count() or 1)}",  # LeRobot's default 4 oversubscribes small machines
+        f"--output_dir={run_dir}",
+        *flags,
+    )
+    return run_dir / "checkpoints" / "last" / "pretrained_model"
+
+
+def evaluate_policy(
+    checkpoint: Path, task: str, eval_dir: Path, num_episodes: int, seed: int, *flags: str
+) -> dict:
+    """lerobot-eval on ManiSkill from episode seed `seed` on; returns its overall metrics."""
+    shutil.rmtree(eval_dir, ignore_errors=True)
+    run_tool(
+        "lerobot-eval",
+        f"--policy.path={checkpoint}",
+        "--env.type=maniskill",
+        f"--env.task={task}",
+        f"--eval.n_episodes={num_episodes}",
+        f"--seed={seed}",
+        f"--output_dir={eval_dir}",
+        *flags,
+    )
+    return json.loads((eval_dir / "eval_info.json").read_text())["overall"]
+
+
+def rates(overall: dict) -> dict[str, float]:
+    """Success and sub-task rates (%) from lerobot-eval's overall metrics; success is LeRobot's own."""
+    milestones = overall.get("pc_milestones", {})
+    return {"success": overall["pc_success"], **{k: v for k, v in milestones.items() if k != "success"}}

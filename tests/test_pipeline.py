@@ -1,0 +1,90 @@
+"""The result-table runner's bookkeeping, with the command-line tools replaced by a recorder."""
+
+import importlib.util
+import json
+import subprocess
+from pathlib import Path
+
+import pytest
+
+from lerobot_maxmi import pipeline
+
+spec = importlib.util.spec_from_file_location(
+    "run_table", Path(__file__).resolve().parents[1] / "benchmarks" / "run_table.py"
+)
+run_table = importlib.util.module_from_spec(spec)
+spec.loader.exec_module(run_table)
+
+
+class FakeTools:
+    """Records each command; lerobot-eval writes an eval_info.json, `failing` tools exit non-zero."""
+
+    def __init__(self, failing: str | None = None):
+        self.commands: list[list[str]] = []
+        self.failing = failing
+
+    def __call__(self, name: str, *args: str) -> None:
+        self.commands.append([name, *args])
+        if name == self.failing:
+            raise subprocess.CalledProcessError(1, name)
+        if name == "lerobot-eval":
+            flags = dict(arg.removeprefix("--").split("=", 1) for arg in args)
+            seen = flags["seed"] == "0"
+            overall = {
+                "pc_success": 40.0 if seen else 20.0,
+                "pc_milestones": {"grasp": 90.0, "success": 20.0},
+            }
+            Path(flags["output_dir"]).mkdir(parents=True)
+            (Path(flags["output_dir"]) / "eval_info.json").write_text(json.dumps({"overall": overall}))
+
+    def tools(self) -> list[str]:
+        return [command[0] for command in self.commands]
+
+    def flag(self, tool: str, name: str) -> list[str]:
+        return [
+            arg.split("=", 1)[1]
+            for c in self.commands
+            if c[0] == tool
+            for arg in c
+            if arg.startswith(name + "=")
+        ]
+
+
+def table_config(tmp_path, variants):
+    return run_table.TableConfig(variants=variants, seeds=[0, 1], output_dir=tmp_path)
+
+
+def test_cells_run_the_pipeline_per_variant_and_are_not_rerun(monkeypatch, tmp_path):
+    tools = FakeTools()
+    monkeypatch.setattr(pipeline, "run_tool", tools)
+    tables = run_table.run_table(table_config(tmp_path, ["maxmi", "none"]))
+
+    assert tools.tools().count("lerobot-train") == 4 and tools.tools().count("lerobot-eval") == 8
+    assert tools.flag("lerobot-maxmi-discover", "--selector") == [
+        "maxmi",
+        "maxmi",
+    ]  # "none" annotates nothing
+    assert tools.flag("lerobot-train", "--policy.type") == ["cotpc_maxmi", "cotpc_maxmi", "cotpc", "cotpc"]
+    assert set(tools.flag("lerobot-eval", "--seed")) == {"0", str(run_table.UNSEEN_SEED)}
+    results = json.loads((tmp_path / "results.json").read_text())
+    assert len(results) == 4 and all(
+        cell["unseen"] == {"success": 20.0, "grasp": 90.0} for cell in results.values()
+    )
+    assert "| maxmi | 2 | 40 ± 0 / 20 ± 0 | 90 ± 0 / 90 ± 0 |" in tables
+    assert (tmp_path / "tables.md").read_text().strip() == tables
+
+    tools.commands.clear()
+    run_table.run_table(table_config(tmp_path, ["maxmi", "none"]))
+    assert "lerobot-train" not in tools.tools()  # every cell is done already
+
+
+def test_a_failed_cell_is_not_recorded(monkeypatch, tmp_path):
+    monkeypatch.setattr(pipeline, "run_tool", FakeTools(failing="lerobot-train"))
+    with pytest.raises(subprocess.CalledProcessError):
+        run_table.run_table(table_config(tmp_path, ["none"]))
+    assert not (tmp_path / "results.json").exists()
+
+
+def test_unknown_variant_is_named():
+    with pytest.raises(ValueError, match=r"unknown variant \['maxmii'\]; choose from maxmi, maxmi_released"):
+        run_table.TableConfig(variants=["maxmii"])
