@@ -15,9 +15,6 @@ import time
 from collections.abc import Callable
 from pathlib import Path
 
-# Selector name for "no key states": the policy trains on the plain demos (K = 0).
-NO_KEY_STATES = "none"
-
 
 def timed(timings: dict[str, float], stage: str, work: Callable, *args):
     """work(*args), with its wall time in seconds stored as timings[stage]."""
