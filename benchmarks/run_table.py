@@ -117,36 +117,28 @@ def run_cell(config: dict, profile: Profile, out: Path) -> dict:
             *variant.discovery_flags,
         )
         timed(timings, "discovery", annotate, demos, dataset, variant.selector, *discovery)
-    train_flags = (
-        f"--policy.context_length={profile.context_length}",
-        f"--policy.device={profile.device}",
-        f"--steps={profile.train_steps}",
-        f"--batch_size={profile.batch_size}",
-        f"--save_freq={profile.train_steps}",
-        f"--log_freq={max(profile.train_steps // 10, 1)}",
-        f"--seed={seed}",
-    )
+    training = (profile.train_steps, profile.batch_size, profile.context_length, profile.device, seed)
     checkpoint = timed(
-        timings, "training", train_policy, variant.policy_type, dataset, cell / "train", *train_flags
+        timings, "training", train_policy, variant.policy_type, dataset, cell / "train", *training
     )
     # Seen: the demos' own initial configurations (their seeds start at 0); unseen: fresh seeds.
     splits = {
         "seen": (0, min(profile.eval_episodes, profile.num_demos)),
         "unseen": (UNSEEN_SEED, profile.eval_episodes),
     }
-    eval_flags = (f"--policy.device={profile.device}", "--eval.batch_size=1")
     result = {"config": config, "wall_s": timings}
     for split, (first_seed, episodes) in splits.items():
+        eval_dir = cell / f"eval_{split}"
         overall = timed(
             timings,
             f"eval_{split}",
             evaluate_policy,
             checkpoint,
             task,
-            cell / f"eval_{split}",
+            eval_dir,
             episodes,
             first_seed,
-            *eval_flags,
+            profile.device,
         )
         result[split] = rates(overall)
     return result

@@ -13,13 +13,13 @@ from pathlib import Path
 
 import draccus
 
+from lerobot_maxmi.discovery.processor import KEY_FRAMES
 from lerobot_maxmi.discovery.quality import dataset_quality, evaluate_selectors, markdown_table
 from lerobot_maxmi.discovery.selectors import AWEConfig
 from lerobot_maxmi.discovery.train import DiscoveryConfig
 from lerobot_maxmi.episode_metadata import GT_KEY_FRAMES, read_episode_column
 from lerobot_maxmi.pipeline import annotate, evaluate_policy, rates, record_demos, timed, train_policy
 
-KEY_FRAMES = "maxmi/key_frames"
 BASELINES = ["uniform", "awe", "last_state"]
 
 
@@ -37,44 +37,16 @@ class DemoConfig:
     seed: int = 0
 
 
-def train(cfg: DemoConfig, annotated: Path, run_dir: Path) -> Path:
-    return train_policy(
-        "cotpc_maxmi",
-        annotated,
-        run_dir,
-        f"--policy.context_length={cfg.context_length}",
-        "--policy.device=cpu",
-        f"--steps={cfg.train_steps}",
-        f"--batch_size={cfg.batch_size}",
-        f"--save_freq={cfg.train_steps}",
-        f"--log_freq={max(cfg.train_steps // 10, 1)}",
-        f"--seed={cfg.seed}",
-    )
-
-
-def evaluate(cfg: DemoConfig, checkpoint: Path, eval_dir: Path) -> dict:
-    # Seeds from 10000 on: initial configurations the demos never used.
-    return evaluate_policy(
-        checkpoint, cfg.task, eval_dir, cfg.eval_episodes, cfg.seed + 10_000, "--policy.device=cpu",
-        "--eval.batch_size=1",
-    )  # fmt: skip
-
-
 def key_state_table(source: Path, annotated: Path, num_concepts: int) -> str:
     """MaxMI's key frames (as written by the annotator) beside cheap baselines, against ground truth."""
     truth = read_episode_column(annotated, GT_KEY_FRAMES)
     found = read_episode_column(annotated, KEY_FRAMES)
-    lengths = {i: frames[-1] + 1 for i, frames in truth.items()}  # gt ends with the final frame
     episodes = sorted(truth)
-    results = {
-        "maxmi": dataset_quality(
-            [found[i] for i in episodes], [truth[i] for i in episodes], [lengths[i] for i in episodes]
-        )
-        | {"key_frames_per_episode": sum(len(found[i]) for i in episodes) / len(episodes)}
-    }
+    lengths = [truth[i][-1] + 1 for i in episodes]  # gt ends with the final frame
+    maxmi = dataset_quality([found[i] for i in episodes], [truth[i] for i in episodes], lengths)
     same_budget = DiscoveryConfig(num_concepts=num_concepts)  # uniform picks as many frames as MaxMI may
     baselines = evaluate_selectors(source, "observation.state", BASELINES, same_budget, AWEConfig())
-    return markdown_table(results | baselines)
+    return markdown_table({"maxmi": maxmi} | baselines)
 
 
 def eval_summary(overall: dict) -> str:
@@ -94,8 +66,11 @@ def main(cfg: DemoConfig) -> None:
     ]
     timed(timings, "demos", record_demos, cfg.task, cfg.num_episodes, source, cfg.seed)
     timed(timings, "discovery", annotate, source, annotated, "maxmi", *discovery_flags)
-    checkpoint = timed(timings, "training", train, cfg, annotated, run_dir)
-    overall = timed(timings, "evaluation", evaluate, cfg, checkpoint, eval_dir)
+    training = (cfg.train_steps, cfg.batch_size, cfg.context_length, "cpu", cfg.seed)
+    checkpoint = timed(timings, "training", train_policy, "cotpc_maxmi", annotated, run_dir, *training)
+    # Seeds from 10000 on: initial configurations the demos never used.
+    unseen = (cfg.eval_episodes, cfg.seed + 10_000, "cpu")
+    overall = timed(timings, "evaluation", evaluate_policy, checkpoint, cfg.task, eval_dir, *unseen)
     summary = "\n\n".join(
         [
             f"# MaxMI demo: {cfg.task}, {cfg.num_episodes} scripted demos",

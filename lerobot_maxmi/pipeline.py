@@ -59,36 +59,52 @@ def annotate(source: Path, output: Path, selector: str, *discovery_flags: str) -
     )
 
 
-def train_policy(policy_type: str, dataset: Path, run_dir: Path, *flags: str) -> Path:
+def train_policy(
+    policy_type: str,
+    dataset: Path,
+    run_dir: Path,
+    steps: int,
+    batch_size: int,
+    context_length: int,
+    device: str,
+    seed: int,
+) -> Path:
     """Train with lerobot-train; returns the last checkpoint's pretrained_model directory."""
     shutil.rmtree(run_dir, ignore_errors=True)  # lerobot-train refuses an existing run directory
     run_tool(
         "lerobot-train",
         f"--policy.type={policy_type}",
+        f"--policy.context_length={context_length}",
+        f"--policy.device={device}",
         "--policy.push_to_hub=false",
         f"--dataset.repo_id=local/{dataset.name}",
         f"--dataset.root={dataset}",
+        f"--steps={steps}",
+        f"--batch_size={batch_size}",
+        f"--save_freq={steps}",
+        f"--log_freq={max(steps // 10, 1)}",
+        f"--seed={seed}",
         f"--num_workers={min(4, os.cpu_count() or 1)}",  # LeRobot's default 4 oversubscribes small machines
         f"--output_dir={run_dir}",
-        *flags,
     )
     return run_dir / "checkpoints" / "last" / "pretrained_model"
 
 
 def evaluate_policy(
-    checkpoint: Path, task: str, eval_dir: Path, num_episodes: int, seed: int, *flags: str
+    checkpoint: Path, task: str, eval_dir: Path, num_episodes: int, seed: int, device: str
 ) -> dict:
-    """lerobot-eval on ManiSkill from episode seed `seed` on; returns its overall metrics."""
+    """lerobot-eval on ManiSkill, one env at a time from episode seed `seed` on; its overall metrics."""
     shutil.rmtree(eval_dir, ignore_errors=True)
     run_tool(
         "lerobot-eval",
         f"--policy.path={checkpoint}",
+        f"--policy.device={device}",
         "--env.type=maniskill",
         f"--env.task={task}",
         f"--eval.n_episodes={num_episodes}",
+        "--eval.batch_size=1",
         f"--seed={seed}",
         f"--output_dir={eval_dir}",
-        *flags,
     )
     return json.loads((eval_dir / "eval_info.json").read_text())["overall"]
 

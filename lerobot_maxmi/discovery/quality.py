@@ -65,12 +65,14 @@ def dataset_quality(
     lengths: Sequence[int],
     tolerance: float = TOLERANCE,
 ) -> dict[str, float]:
-    """Mean matched error (% of length), share of GT key states found within tolerance, extras per episode."""
+    """Key frames per episode, mean matched error (% of length), share of GT key states found within
+    tolerance, extras per episode."""
     total = sum(
         (episode_quality(f, t, n, tolerance) for f, t, n in zip(found, truth, lengths, strict=True)),
         Quality([], 0, 0, 0),
     )
     return {
+        "key_frames_per_episode": float(np.mean([len(f) for f in found])),
         "mean_error_pct": 100 * float(np.mean(total.errors)) if total.errors else float("nan"),
         "found_within": total.num_found_within / total.num_truth if total.num_truth else float("nan"),
         "extra_per_episode": total.num_extra / len(lengths),
@@ -93,9 +95,7 @@ def evaluate_selectors(
     results = {}
     for name in selectors:
         found = make_selector(name, context).select(episodes)
-        results[name] = dataset_quality(found, [truth[i] for i in states], lengths, tolerance) | {
-            "key_frames_per_episode": float(np.mean([len(f) for f in found]))
-        }
+        results[name] = dataset_quality(found, [truth[i] for i in states], lengths, tolerance)
     return results
 
 
