@@ -2,7 +2,7 @@
 
 import torch
 
-from lerobot_maxmi.discovery.ksl_net import KSLNet, resample, to_episode_frame
+from lerobot_maxmi.discovery.ksl_net import KSLNet, resample, soft_argmax, to_episode_frame
 from lerobot_maxmi.discovery.losses import (
     diversity_loss,
     interpolate_states,
@@ -10,7 +10,6 @@ from lerobot_maxmi.discovery.losses import (
     ordering_loss,
     released_maxmi_loss,
     released_shifted_states,
-    soft_argmax,
 )
 from lerobot_maxmi.discovery.nms import key_frames, suppress_nearby
 from lerobot_maxmi.mi import load_estimator

@@ -1,6 +1,7 @@
 """The `maniskill` env type: ManiSkill tasks through LeRobot's env interface, and lerobot-eval's
 sub-task (milestone) rates."""
 
+import inspect
 import json
 import logging
 import os
@@ -289,10 +290,14 @@ def test_hooks_install_once_and_only_on_supported_lerobot(monkeypatch):
     assert not eval_hooks._is_supported(lerobot_eval)
     monkeypatch.undo()
 
-    monkeypatch.setattr(lerobot_eval, "eval_one", lerobot_eval.eval_one)  # restored after the test
-    monkeypatch.setattr(lerobot_eval, "eval_policy_all", lerobot_eval.eval_policy_all)
+    # Start from LeRobot's own functions (earlier tests' create_envs may have wrapped them already);
+    # monkeypatch restores whatever was there after the test.
+    originals = tuple(inspect.unwrap(getattr(lerobot_eval, name)) for name in ("eval_one", "eval_policy_all"))
+    monkeypatch.setattr(lerobot_eval, "eval_one", originals[0])
+    monkeypatch.setattr(lerobot_eval, "eval_policy_all", originals[1])
     eval_hooks.install_eval_hooks()
     wrapped = lerobot_eval.eval_one, lerobot_eval.eval_policy_all
+    assert wrapped[0] is not originals[0] and wrapped[1] is not originals[1]
     eval_hooks.install_eval_hooks()
     assert (lerobot_eval.eval_one, lerobot_eval.eval_policy_all) == wrapped
     assert getattr(lerobot_eval.eval_one, eval_hooks._INSTALLED)

@@ -34,7 +34,7 @@ def classic_states(observations: np.ndarray) -> np.ndarray:
     dim = observations.shape[-1]
     if dim == FULL_DIM:
         return observations[:, STATE_LAYOUTS["classic"]].astype(np.float32)
-    if dim >= CLASSIC_DIM and dim != FULL_DIM:
+    if dim >= CLASSIC_DIM:
         return observations[:, :CLASSIC_DIM].astype(np.float32)
     raise ValueError(
         f"Kitchen observations must have 30, 59 or 60 dims (robot qpos 9 + object qpos 21 first), got {dim}."

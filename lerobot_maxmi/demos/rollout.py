@@ -45,10 +45,7 @@ class FirstFrames:
         return len(self.first) == len(self.names)
 
     def key_frames(self, last_frame: int) -> tuple[list[int] | None, str | None]:
-        """Key frames (sub-goals then the final frame), or None and the reason they are unusable."""
-        missing = [name for name in self.names if name not in self.first]
-        if missing:
-            return None, f"sub-goal(s) {missing} never held"
+        """Key frames (sub-goals, then the final frame) once all_held(), or None and why they are unusable."""
         frames = [self.first[name] for name in self.names] + [last_frame]
         if frames != sorted(frames):
             return None, f"sub-goals out of order: {dict(zip([*self.names, FINAL], frames, strict=True))}"

@@ -1,6 +1,6 @@
 """The MaxMI objective (MaxMI §3.2–3.3), one function per equation.
 
-t̂_k = Σ_t t · softmax(φ(τ))_k,t                         `soft_argmax`
+t̂_k = Σ_t t · softmax(φ(τ))_k,t                         `ksl_net.soft_argmax`
 s_t̂ by linear interpolation at fractional t̂             `interpolate_states`
 L_MaxMI = −Σ_k I({s_t̂_k, s_t̂_k−Δt}_i)                 `maxmi_loss`
 L_div   = Σ_{u<v} softplus(−|t̂_u − t̂_v|)  (paper)       `diversity_loss`
@@ -14,16 +14,7 @@ import torch
 import torch.nn.functional as F  # noqa: N812
 from torch import Tensor
 
-from lerobot_maxmi.discovery.ksl_net import soft_argmax
 from lerobot_maxmi.mi import MIEstimator, state_mi
-
-__all__ = [
-    "diversity_loss",
-    "maxmi_loss",
-    "ordering_loss",
-    "released_maxmi_loss",
-    "soft_argmax",  # lives with KSL-Net (it reads the net's logits); re-exported for the loss code
-]
 
 RELEASED_MI_WEIGHT = 4.0
 RELEASED_SHIFT = -2

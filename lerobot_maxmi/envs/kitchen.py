@@ -28,7 +28,6 @@ logger = logging.getLogger(__name__)
 
 GYM_ID = "FrankaKitchen-v1"
 ALL_TASKS = tuple(OBS_ELEMENT_GOALS)  # the 7 subtasks, in gymnasium-robotics' order
-CLASSIC_TASKS = ("microwave", "kettle", "light switch", "slide cabinet")  # D4RL kitchen-complete
 NUM_TASKS_COMPLETED = "num_tasks_completed"
 FPS = 12  # one env step is 0.08 s (12.5 Hz); LeRobot needs an integer rate
 RENDER_SIZE = 224

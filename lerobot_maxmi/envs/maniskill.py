@@ -5,7 +5,6 @@ import numpy as np
 from gymnasium import spaces
 
 from lerobot_maxmi.envs.maniskill_sim import (
-    has_render_device,
     make_sim_env,
     restrict_faucet_models,
     subgoal_flags,
@@ -33,8 +32,8 @@ class ManiSkillGymEnv(gym.Env):
     ):
         super().__init__()
         spec = task_spec(task)
-        render_mode = "rgb_array" if has_render_device() else None
-        self._sim = make_sim_env(task, control_mode, obs_mode, max_episode_steps, render_mode)
+        # make_sim_env drops the render mode where there is no Vulkan device.
+        self._sim = make_sim_env(task, control_mode, obs_mode, max_episode_steps, "rgb_array")
         if model_ids is not None:
             restrict_faucet_models(self._sim, model_ids)
         self.task = task

@@ -49,7 +49,8 @@ class RecordMilestones(gym.Wrapper):
         observation, reward, terminated, truncated, info = self.env.step(action)
         episode = self._episodes[-1]
         for name, value in info[MILESTONES_KEY].items():
-            episode[name] = max(episode[name], _as_milestone(value))
+            # The new value first: max keeps the first of equals, so a count staying 0 stays a number.
+            episode[name] = max(_as_milestone(value), episode[name])
         return observation, reward, terminated, truncated, info
 
     def pop_episode_milestones(self) -> list[dict[str, bool]]:
