@@ -251,3 +251,46 @@ def test_lerobot_train_without_key_states_is_the_baseline(tmp_path):
     assert result.returncode == 0, result.stderr[-3000:]
     assert "action_loss:" in result.stdout + result.stderr
     assert "key_state_loss:" not in result.stdout + result.stderr
+
+
+def serve_from(directory: Path, monkeypatch) -> list[str]:
+    """Answer LeRobot's hub downloads (policy config, weights, processors) from `directory`: the network
+    boundary. Returns the repo ids asked for."""
+    import lerobot.configs.policies
+    import lerobot.policies.pretrained
+    import lerobot.processor.pipeline
+
+    asked = []
+
+    def hf_hub_download(repo_id, filename, **kwargs):
+        asked.append(repo_id)
+        return str(directory / filename)
+
+    for module in (lerobot.configs.policies, lerobot.policies.pretrained, lerobot.processor.pipeline):
+        monkeypatch.setattr(module, "hf_hub_download", hf_hub_download)
+    return asked
+
+
+def test_checkpoint_loads_by_hub_repo_id(tmp_path, monkeypatch, generator):
+    """What lerobot-eval --policy.path=<repo id> does: config, weights and processors from the hub."""
+    from lerobot.configs.policies import PreTrainedConfig
+
+    config = tiny_config(NUM_KEY_STATES, config_class=CotpcMaxmiConfig)
+    stats = {OBS_STATE: {"mean": torch.ones(STATE_DIM), "std": 2 * torch.ones(STATE_DIM)}}
+    policy = CotpcMaxmiPolicy(config)
+    policy.save_pretrained(tmp_path)
+    for pipeline in make_pre_post_processors(config, dataset_stats=stats):
+        pipeline.save_pretrained(tmp_path)
+    asked = serve_from(tmp_path, monkeypatch)
+
+    repo_id = "someone/cotpc_maxmi_pickcube"
+    loaded_config = PreTrainedConfig.from_pretrained(repo_id)
+    assert loaded_config == config
+    loaded = CotpcMaxmiPolicy.from_pretrained(repo_id, strict=True)
+    preprocessor, postprocessor = make_pre_post_processors(loaded_config, pretrained_path=repo_id)
+    assert set(asked) == {repo_id}
+    state = torch.randn(1, STATE_DIM, generator=generator)
+    torch.testing.assert_close(preprocessor({OBS_STATE: state})[OBS_STATE], (state - 1) / 2)
+    expected = policy.select_action({OBS_STATE: state})
+    assert torch.equal(loaded.select_action({OBS_STATE: state}), expected)
+    assert postprocessor(expected).shape == (1, ACTION_DIM)
