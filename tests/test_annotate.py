@@ -1,6 +1,8 @@
 """`lerobot-maxmi-discover` end to end on tiny state-only datasets (tiny KSL-Net, few steps)."""
 
 import hashlib
+import os
+import subprocess
 import sys
 from pathlib import Path
 
@@ -283,3 +285,24 @@ def test_push_offline_fails_clearly_after_the_dataset_is_complete(source, tmp_pa
     with pytest.raises(RuntimeError, match="complete at .*out, but pushing it to local/out failed"):
         annotate(config(source, tmp_path / "out", "--selector=last_state", "--push_to_hub=true"))
     assert read_episode_column(tmp_path / "out", KEY_FRAMES)[0] == [19]
+
+
+@pytest.mark.slow
+def test_accelerate_launch_trains_in_two_processes_and_writes_once(source, tmp_path):
+    """`accelerate launch --num_processes=2 lerobot-maxmi-discover ...`, on CPU processes (gloo) so that
+    it runs anywhere: both processes train, only the main one writes the dataset."""
+    bin_dir = Path(sys.executable).parent
+    output = tmp_path / "launched" / "out"
+    command = [
+        str(bin_dir / "accelerate"), "launch", "--multi_gpu", "--num_processes=2", "--num_machines=1",
+        "--mixed_precision=no", "--dynamo_backend=no", str(bin_dir / "lerobot-maxmi-discover"),
+        "--dataset.repo_id=local/src", f"--dataset.root={source}", "--output.repo_id=local/out",
+        f"--output.root={output}", *TINY,
+    ]  # fmt: skip
+    environment = {**os.environ, "CUDA_VISIBLE_DEVICES": "", "OMP_NUM_THREADS": "1"}
+    result = subprocess.run(command, capture_output=True, text=True, timeout=300, env=environment)
+    assert result.returncode == 0, result.stderr[-3000:]
+    assert "(2 process(es))" in result.stderr  # the main process's training log line
+    assert result.stderr.count("annotated dataset written") == 1
+    assert sorted(p.name for p in output.parent.iterdir()) == ["out"]  # no staging left behind
+    assert len(read_episode_column(output, KEY_FRAMES)) == 5

@@ -34,6 +34,7 @@ import httpx
 import numpy as np
 import pyarrow.parquet as pq
 import torch
+from accelerate import PartialState
 from draccus.utils import ParsingError
 from huggingface_hub import HfApi
 from huggingface_hub.errors import OfflineModeIsEnabled
@@ -41,6 +42,7 @@ from lerobot.datasets.dataset_tools import add_features
 from lerobot.datasets.io_utils import write_stats
 from lerobot.datasets.lerobot_dataset import LeRobotDataset
 from lerobot.utils import constants
+from lerobot.utils.utils import init_logging
 from torch import Tensor
 from tqdm import tqdm
 
@@ -53,7 +55,7 @@ from lerobot_maxmi.discovery.selectors import (
     SelectionContext,
     make_selector,
 )
-from lerobot_maxmi.discovery.train import DiscoveryConfig, check_episodes
+from lerobot_maxmi.discovery.train import DiscoveryConfig, check_episodes, cpu_process_group
 from lerobot_maxmi.episode_metadata import GT_KEY_FRAMES, read_episode_column, write_episode_columns
 
 SELECTOR_COLUMN = "maxmi/selector"
@@ -185,9 +187,9 @@ def write_plots(root: Path, states: dict[int, Tensor], frames: dict[int, list[in
         plot_episode(states[index], frames[index], truth.get(index), path, f"episode {index}")
 
 
-def build_output(cfg: AnnotateConfig, source: LeRobotDataset, staging: Path) -> Path:
-    """Write the annotated dataset under `staging`; returns its root."""
-    state_dim = check_state_feature(source.meta.features, cfg.state_key)
+def select_key_frames(cfg: AnnotateConfig, source: LeRobotDataset):
+    """Each episode's states and key frames (`{episode_index: ...}`), and the selector that chose them."""
+    check_state_feature(source.meta.features, cfg.state_key)
     if KEY_STATES in source.meta.features:
         raise ValueError(
             f"the source already has {KEY_STATES!r} (it was annotated before); annotate the original dataset"
@@ -197,7 +199,14 @@ def build_output(cfg: AnnotateConfig, source: LeRobotDataset, staging: Path) -> 
     check_episodes(episodes, 1)
     context = SelectionContext(source.root, list(states), cfg.discovery, cfg.awe)
     selector = make_selector(cfg.selector, context)
-    frames = dict(zip(states, selector.select(episodes), strict=True))
+    return states, dict(zip(states, selector.select(episodes), strict=True)), selector
+
+
+def build_output(cfg: AnnotateConfig, source: LeRobotDataset, staging: Path) -> Path:
+    """Write the annotated dataset under `staging`; returns its root."""
+    state_dim = check_state_feature(source.meta.features, cfg.state_key)
+    states, frames, selector = select_key_frames(cfg, source)
+    episodes = list(states.values())
     num_key_states, key_states = padded_key_states(episodes, list(frames.values()))
     by_episode = dict(zip(states, key_states, strict=True))
     logging.info("%d key states of dim %d per episode (selector %s)", num_key_states, state_dim, cfg.selector)
@@ -241,12 +250,16 @@ def push(cfg: AnnotateConfig, root: Path) -> None:
         ) from error
 
 
-def annotate(cfg: AnnotateConfig) -> Path:
-    """Annotate `cfg.dataset` into a new dataset at the output root; returns that root."""
+def annotate(cfg: AnnotateConfig) -> Path | None:
+    """Annotate `cfg.dataset` into a new dataset at the output root; returns that root (None in the worker
+    processes of a multi-process `accelerate launch`, which only help train the localizer)."""
     target = cfg.output.resolved_root()
     if target.exists() and not cfg.overwrite:
         raise FileExistsError(f"{target} already exists; pass --overwrite=true to replace it")
     source = LeRobotDataset(cfg.dataset.repo_id, root=cfg.dataset.root)
+    if not PartialState(cpu=cpu_process_group()).is_main_process:  # an `accelerate launch` worker
+        select_key_frames(cfg, source)
+        return None
     target.parent.mkdir(parents=True, exist_ok=True)
     staging = Path(tempfile.mkdtemp(prefix=f".{target.name}.", dir=target.parent))
     try:
@@ -265,7 +278,7 @@ def run(cfg: AnnotateConfig) -> None:
 
 
 def main() -> None:
-    logging.basicConfig(level=logging.INFO, format="%(levelname)s %(message)s")
+    init_logging()
     try:
         run()
     except (*USER_ERRORS, ParsingError) as error:

@@ -4,6 +4,7 @@ import logging
 from dataclasses import asdict, dataclass, field
 
 import torch
+from accelerate import Accelerator
 from torch import Tensor
 from tqdm import tqdm
 
@@ -94,6 +95,18 @@ def discovery_objective(net: KSLNet, states: Tensor, estimator, cfg: DiscoveryCo
     return {"loss": loss, "mi": -mi_term, "diversity": spread_term}
 
 
+def cpu_process_group() -> bool:
+    """Without a GPU, accelerate forms a multi-process (gloo) group only when told to use the CPU."""
+    return not torch.cuda.is_available()
+
+
+def make_accelerator() -> Accelerator:
+    """A no-op in one process; data-parallel (DDP) under `accelerate launch` / torchrun, where each process
+    draws its own batches and gradients are averaged. We place tensors ourselves, so that one process
+    keeps --discovery.device."""
+    return Accelerator(cpu=cpu_process_group(), device_placement=False)
+
+
 def train_localizer(episodes: list[Tensor], cfg: DiscoveryConfig) -> KSLNet:
     """Fit KSL-Net to the episodes' (frames, state_dim) state sequences."""
     check_episodes(episodes, cfg.num_concepts)
@@ -103,7 +116,9 @@ def train_localizer(episodes: list[Tensor], cfg: DiscoveryConfig) -> KSLNet:
             f"{len(episodes)} episodes and --discovery.batch_size={cfg.batch_size}"
         )
     torch.manual_seed(cfg.seed)
-    device = resolve_device(cfg.device)
+    accelerator = make_accelerator()
+    # Launched processes use the device the launcher gives each of them.
+    device = resolve_device(cfg.device) if accelerator.num_processes == 1 else accelerator.device
     length = cfg.resample_length or min(DEFAULT_MAX_RESAMPLE_LENGTH, *(len(states) for states in episodes))
     data = stack_resampled(episodes, length).to(device)
     net = KSLNet(data.shape[-1], length, cfg.num_concepts, **asdict(cfg.model)).to(device)
@@ -111,18 +126,24 @@ def train_localizer(episodes: list[Tensor], cfg: DiscoveryConfig) -> KSLNet:
     net.set_state_statistics(frames.mean(0), frames.std(0))
     estimator = load_estimator(cfg.estimator, device=device)
     optimizer = torch.optim.Adam(net.parameters(), lr=cfg.lr)
-    generator = torch.Generator().manual_seed(cfg.seed)
+    net, optimizer = accelerator.prepare(net, optimizer)
+    generator = torch.Generator().manual_seed(cfg.seed + accelerator.process_index)
     batch_size = min(cfg.batch_size, len(episodes))
-    progress = tqdm(range(cfg.steps), desc="discover key states")
+    progress = tqdm(range(cfg.steps), desc="discover key states", disable=not accelerator.is_main_process)
     for _ in progress:
         batch = data[torch.randperm(len(data), generator=generator)[:batch_size].to(device)]
         terms = discovery_objective(net, batch, estimator, cfg)
         optimizer.zero_grad(set_to_none=True)
-        terms["loss"].backward()
+        accelerator.backward(terms["loss"])
         optimizer.step()
         progress.set_postfix({k: f"{v.item():.3f}" for k, v in terms.items()})
-    logging.info("trained KSL-Net on %d episodes resampled to %d steps", len(episodes), length)
-    return net.eval()
+    logging.info(
+        "trained KSL-Net on %d episodes resampled to %d steps (%d process(es))",
+        len(episodes),
+        length,
+        accelerator.num_processes,
+    )
+    return accelerator.unwrap_model(net).eval()
 
 
 def localize(net: KSLNet, episodes: list[Tensor], cfg: DiscoveryConfig) -> list[list[int]]:
