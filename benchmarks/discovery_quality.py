@@ -10,11 +10,11 @@ final frame is left out on both sides (see `lerobot_maxmi.discovery.quality`). C
 frames matched within the tolerance, and unmatched discovered frames per episode.
 """
 
-import logging
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import draccus
+from lerobot.utils.utils import init_logging
 
 from lerobot_maxmi.discovery.annotate import DatasetLocation
 from lerobot_maxmi.discovery.quality import TOLERANCE, evaluate_selectors, markdown_table
@@ -35,7 +35,7 @@ class QualityConfig:
 
 @draccus.wrap()
 def main(cfg: QualityConfig) -> None:
-    logging.basicConfig(level=logging.INFO, format="%(levelname)s %(message)s")
+    init_logging()
     results = evaluate_selectors(
         cfg.dataset.resolved_root(), cfg.state_key, cfg.selectors, cfg.discovery, cfg.awe, cfg.tolerance
     )

@@ -9,7 +9,6 @@ episodes where both frames exist form one sample set; its MI comes from
 `lerobot_maxmi.mi.state_mi` with the chosen estimator. One PNG per key state in `output_dir`.
 """
 
-import logging
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -19,6 +18,7 @@ import matplotlib
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import torch  # noqa: E402
+from lerobot.utils.utils import init_logging  # noqa: E402
 from torch import Tensor  # noqa: E402
 from tqdm import tqdm  # noqa: E402
 
@@ -66,7 +66,7 @@ def plot_curve(shifts: list[int], mi: list[float], title: str, path: Path, delta
 
 @draccus.wrap()
 def main(cfg: MIPeakConfig) -> None:
-    logging.basicConfig(level=logging.INFO, format="%(levelname)s %(message)s")
+    init_logging()
     root = cfg.dataset.resolved_root()
     states = load_episode_states(root, cfg.state_key)
     truth = read_episode_column(root, GT_KEY_FRAMES)

@@ -19,6 +19,7 @@ from pathlib import Path
 
 import draccus
 import torch
+from lerobot.utils.utils import init_logging
 from safetensors.torch import load_model
 from tqdm import tqdm
 
@@ -157,7 +158,7 @@ def run(cfg: PretrainMIConfig) -> None:
 
 
 def main() -> None:
-    logging.basicConfig(level=logging.INFO, format="%(levelname)s %(message)s")
+    init_logging()
     run()
 
 
