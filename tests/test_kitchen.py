@@ -74,6 +74,7 @@ def test_create_envs_reset_step_close():
     vector_env = cfg.create_envs(n_envs=2)["franka_kitchen"][0]
     observation, info = vector_env.reset(seed=[0, 1])
     assert observation["agent_pos"].shape == (2, 30) and observation["agent_pos"].dtype == np.float32
+    np.testing.assert_array_equal(observation["environment_state"], observation["agent_pos"])  # for ACT
     assert not info["is_success"].any()
     for _ in range(5):
         observation, _, terminated, truncated, info = vector_env.step(np.zeros((2, 9)))

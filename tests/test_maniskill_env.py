@@ -41,7 +41,8 @@ def test_config_defaults_follow_the_task():
     config = ManiSkillEnvConfig(task="StackCube-v1")
     assert config.control_mode == "pd_ee_delta_pose"
     assert config.episode_length == TASKS["StackCube-v1"].episode_length
-    assert config.features["agent_pos"].shape == (48,)
+    assert config.features["agent_pos"].shape == config.features["environment_state"].shape == (48,)
+    assert config.features_map["environment_state"] == "observation.environment_state"
     assert config.features["action"].shape == (7,)
     assert ManiSkillEnvConfig(task="StackCube-v1", control_mode="pd_joint_delta_pos").features[
         "action"
@@ -102,6 +103,7 @@ def test_create_envs_reset_step_close(task):
         observation, _ = vector_env.reset(seed=[7], options=NEW_ROLLOUT)
         assert observation["agent_pos"].shape == (1, spec.state_dim)
         assert observation["agent_pos"].dtype == np.float32
+        np.testing.assert_array_equal(observation["environment_state"], observation["agent_pos"])  # for ACT
         again, _ = vector_env.reset(seed=[7], options=NEW_ROLLOUT)
         np.testing.assert_array_equal(again["agent_pos"], observation["agent_pos"])
 
@@ -306,7 +308,8 @@ def test_hooks_install_once_and_only_on_supported_lerobot(monkeypatch):
 # ---- end to end: lerobot-train, then lerobot-eval on our env, in subprocesses -----------------------
 
 
-def make_pickcube_shaped_dataset(root: Path):
+def make_pickcube_shaped_dataset(root: Path, num_episodes: int = 2):
+    """PickCube-sized random episodes with the columns the demo recorder writes."""
     from lerobot.datasets.lerobot_dataset import LeRobotDataset
 
     features = {
@@ -317,7 +320,7 @@ def make_pickcube_shaped_dataset(root: Path):
         repo_id="local/pickcube", fps=20, features=features, root=root, use_videos=False
     )
     rng = np.random.default_rng(0)
-    for _ in range(2):
+    for _ in range(num_episodes):
         for _ in range(10):
             frame = {"observation.state": rng.normal(size=42), "action": rng.uniform(-1, 1, size=7)}
             dataset.add_frame(
@@ -325,6 +328,7 @@ def make_pickcube_shaped_dataset(root: Path):
             )
         dataset.save_episode()
     dataset.finalize()
+    return dataset
 
 
 def run_cli(name: str, *args: str):
@@ -337,8 +341,6 @@ def run_cli(name: str, *args: str):
 @pytest.mark.slow
 def test_lerobot_eval_reports_success_and_subtask_rates(tmp_path):
     make_pickcube_shaped_dataset(tmp_path / "dataset")
-    # LeRobot's built-in policies (ACT, Diffusion, TD-MPC) all need an image or an
-    # `observation.environment_state` input; ours is state-only, so this trains a tiny CoTPC.
     run_cli(
         "lerobot-train",
         "--dataset.repo_id=local/pickcube",
@@ -375,3 +377,52 @@ def test_lerobot_eval_reports_success_and_subtask_rates(tmp_path):
     assert eval_info["per_group"]["maniskill"][RATES_KEY].keys() == {"grasp", "success"}
     if not has_render_device():
         assert overall["video_paths"] == []  # skipped, not crashed
+
+
+@pytest.mark.slow
+def test_lerobot_eval_runs_a_builtin_act_checkpoint(tmp_path):
+    """LeRobot's own ACT, trained a few steps on a 3-episode set, evaluated on PickCube through our env."""
+    demos = make_pickcube_shaped_dataset(tmp_path / "demos", num_episodes=3)
+    # docs/envs_and_demos.md's recipe: ACT needs `observation.environment_state` when there are no images.
+    from lerobot.datasets.dataset_tools import add_features
+
+    state = demos.meta.features["observation.state"]
+    add_features(
+        demos,
+        {"observation.environment_state": (lambda row, _episode, _frame: row["observation.state"], state)},
+        output_dir=tmp_path / "dataset",
+        repo_id="local/pickcube",
+    )
+    tiny_act = {
+        "chunk_size": 4, "n_action_steps": 4, "dim_model": 16, "n_heads": 2, "dim_feedforward": 32,
+        "n_encoder_layers": 1, "n_decoder_layers": 1, "use_vae": "false",
+    }  # fmt: skip
+    run_cli(
+        "lerobot-train",
+        "--dataset.repo_id=local/pickcube",
+        f"--dataset.root={tmp_path / 'dataset'}",
+        "--policy.type=act",
+        *(f"--policy.{name}={value}" for name, value in tiny_act.items()),
+        "--policy.device=cpu",
+        "--policy.push_to_hub=false",
+        "--steps=2",
+        "--batch_size=2",
+        "--num_workers=0",
+        "--env_eval_freq=0",
+        "--save_freq=2",
+        f"--output_dir={tmp_path / 'train'}",
+    )
+    run_cli(
+        "lerobot-eval",
+        f"--policy.path={tmp_path / 'train/checkpoints/last/pretrained_model'}",
+        "--env.type=maniskill",
+        "--env.task=PickCube-v1",
+        "--env.episode_length=10",
+        "--eval.n_episodes=1",
+        "--eval.batch_size=1",
+        "--policy.device=cpu",
+        f"--output_dir={tmp_path / 'eval'}",
+    )
+    overall = json.loads((tmp_path / "eval/eval_info.json").read_text())["overall"]
+    assert overall["n_episodes"] == 1
+    assert overall[RATES_KEY].keys() == {"grasp", "success"}

@@ -9,9 +9,10 @@ from functools import partial
 import gymnasium as gym
 from lerobot.configs.types import FeatureType, PolicyFeature
 from lerobot.envs.configs import EnvConfig
-from lerobot.utils.constants import ACTION, OBS_STATE
+from lerobot.utils.constants import ACTION
 
 from lerobot_maxmi.envs.maniskill_sim import ACTION_DIMS, FAUCET_TASK, task_spec
+from lerobot_maxmi.envs.observation import add_state_features, features_map
 
 # The subtasks of gymnasium-robotics' FrankaKitchen-v1, listed here so importing configs stays light.
 ALL_KITCHEN_TASKS = (
@@ -38,7 +39,7 @@ class ManiSkillEnvConfig(EnvConfig):
     sim_backend: str = "cpu"
     model_ids: list[str] | None = None
     features: dict[str, PolicyFeature] = field(default_factory=dict)
-    features_map: dict[str, str] = field(default_factory=lambda: {ACTION: ACTION, "agent_pos": OBS_STATE})
+    features_map: dict[str, str] = field(default_factory=features_map)
 
     def __post_init__(self):
         spec = task_spec(self.task)
@@ -61,7 +62,7 @@ class ManiSkillEnvConfig(EnvConfig):
             self.episode_length = spec.episode_length
         self.features.setdefault(ACTION, PolicyFeature(FeatureType.ACTION, (ACTION_DIMS[self.control_mode],)))
         if spec.state_dim is not None:
-            self.features.setdefault("agent_pos", PolicyFeature(FeatureType.STATE, (spec.state_dim,)))
+            add_state_features(self.features, spec.state_dim)
 
     @property
     def gym_kwargs(self) -> dict:
@@ -108,7 +109,7 @@ class FrankaKitchenEnvConfig(EnvConfig):
     state_layout: str = "classic"
     render: bool = True  # videos where MuJoCo has a headless GL backend (EGL / OSMesa via MUJOCO_GL)
     features: dict[str, PolicyFeature] = field(default_factory=dict)
-    features_map: dict[str, str] = field(default_factory=lambda: {ACTION: ACTION, "agent_pos": OBS_STATE})
+    features_map: dict[str, str] = field(default_factory=features_map)
 
     def __post_init__(self):
         from lerobot_maxmi.envs.kitchen import STATE_LAYOUTS, check_state_layout, check_tasks
@@ -116,7 +117,7 @@ class FrankaKitchenEnvConfig(EnvConfig):
         self.tasks_to_complete = list(check_tasks(self.tasks_to_complete))
         state_dim = len(STATE_LAYOUTS[check_state_layout(self.state_layout)])
         self.features.setdefault(ACTION, PolicyFeature(FeatureType.ACTION, (9,)))
-        self.features.setdefault("agent_pos", PolicyFeature(FeatureType.STATE, (state_dim,)))
+        add_state_features(self.features, state_dim)
 
     @property
     def gym_kwargs(self) -> dict:

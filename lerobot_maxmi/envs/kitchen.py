@@ -15,7 +15,6 @@ os.environ.setdefault("PYOPENGL_PLATFORM", os.environ["MUJOCO_GL"])
 
 import gymnasium as gym  # noqa: E402
 import numpy as np  # noqa: E402
-from gymnasium import spaces  # noqa: E402
 from gymnasium_robotics.envs.franka_kitchen.kitchen_env import (  # noqa: E402
     BONUS_THRESH,
     OBS_ELEMENT_GOALS,
@@ -23,6 +22,7 @@ from gymnasium_robotics.envs.franka_kitchen.kitchen_env import (  # noqa: E402
 )
 
 from lerobot_maxmi.envs.milestones import MILESTONES_KEY  # noqa: E402
+from lerobot_maxmi.envs.observation import state_observation, state_observation_space  # noqa: E402
 
 logger = logging.getLogger(__name__)
 
@@ -112,7 +112,7 @@ def _fast_software_rendering(env: gym.Env) -> None:
 
 
 class FrankaKitchenGymEnv(gym.Env):
-    """Observation `{"agent_pos": float32 state}`; info `is_success` (all tasks done), the number of
+    """Observation: the state (see `envs.observation`); info `is_success` (all tasks done), the number of
     completed tasks and its milestones. Renders RGB frames where MuJoCo has a headless GL backend."""
 
     def __init__(
@@ -135,9 +135,7 @@ class FrankaKitchenGymEnv(gym.Env):
         self._max_episode_steps = max_episode_steps
         self.metadata = {"render_modes": ["rgb_array"], "render_fps": fps}
         self.action_space = self._kitchen.action_space
-        self.observation_space = spaces.Dict(
-            {"agent_pos": spaces.Box(-np.inf, np.inf, shape=self.state_indices.shape, dtype=np.float32)}
-        )
+        self.observation_space = state_observation_space(self.state_indices.shape)
 
     @property
     def simulation(self):
@@ -167,5 +165,4 @@ class FrankaKitchenGymEnv(gym.Env):
         self._kitchen.close()
 
     def _observation(self, observation: dict) -> dict[str, np.ndarray]:
-        state = observation["observation"][self.state_indices]
-        return {"agent_pos": state.astype(np.float32)}
+        return state_observation(observation["observation"][self.state_indices])

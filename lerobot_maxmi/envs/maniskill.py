@@ -2,7 +2,6 @@
 
 import gymnasium as gym
 import numpy as np
-from gymnasium import spaces
 
 from lerobot_maxmi.envs.maniskill_sim import (
     make_sim_env,
@@ -11,12 +10,13 @@ from lerobot_maxmi.envs.maniskill_sim import (
     task_spec,
 )
 from lerobot_maxmi.envs.milestones import MILESTONES_KEY
+from lerobot_maxmi.envs.observation import state_observation, state_observation_space
 
 
 class ManiSkillGymEnv(gym.Env):
     """One CPU ManiSkill env with the observation and info LeRobot's evaluation reads.
 
-    Observation `{"agent_pos": float32 state}`; info `is_success` and, under "milestones", the
+    Observation: the state (see `envs.observation`); info `is_success` and, under "milestones", the
     task's sub-goal flags at this step. Renders RGB frames where a Vulkan device exists; without
     one the simulation is physics-only and `render_mode` is None.
     """
@@ -42,29 +42,22 @@ class ManiSkillGymEnv(gym.Env):
         self._max_episode_steps = max_episode_steps or spec.episode_length
         self.metadata = {"render_modes": ["rgb_array"], "render_fps": fps}
         self.action_space = self._sim.action_space
-        state_shape = self._sim.observation_space.shape
-        self.observation_space = spaces.Dict(
-            {"agent_pos": spaces.Box(-np.inf, np.inf, shape=state_shape, dtype=np.float32)}
-        )
+        self.observation_space = state_observation_space(self._sim.observation_space.shape)
 
     def reset(self, *, seed: int | None = None, options: dict | None = None):
         # `options` carries LeRobot's rollout markers, which mean nothing to ManiSkill.
         super().reset(seed=seed)
         state, _ = self._sim.reset(seed=seed)
-        return self._observation(state), {"is_success": False}
+        return state_observation(state), {"is_success": False}
 
     def step(self, action: np.ndarray):
         state, reward, terminated, truncated, sim_info = self._sim.step(action)
         flags = subgoal_flags(self._sim, sim_info)
         info = {"is_success": flags["success"], MILESTONES_KEY: flags}
-        return self._observation(state), float(reward), bool(terminated), bool(truncated), info
+        return state_observation(state), float(reward), bool(terminated), bool(truncated), info
 
     def render(self) -> np.ndarray | None:
         return self._sim.render() if self.render_mode is not None else None
 
     def close(self) -> None:
         self._sim.close()
-
-    @staticmethod
-    def _observation(state: np.ndarray) -> dict[str, np.ndarray]:
-        return {"agent_pos": np.asarray(state, dtype=np.float32)}
