@@ -331,17 +331,18 @@ def make_pickcube_shaped_dataset(root: Path, num_episodes: int = 2):
     return dataset
 
 
-def run_cli(name: str, *args: str):
+def run_cli(name: str, *args: str) -> str:
     command = [str(Path(sys.executable).with_name(name)), *args]
     env = os.environ | {"HF_HUB_OFFLINE": "1"}
     result = subprocess.run(command, capture_output=True, text=True, timeout=600, env=env)
     assert result.returncode == 0, result.stdout[-3000:] + result.stderr[-5000:]
+    return result.stdout + result.stderr
 
 
 @pytest.mark.slow
 def test_lerobot_eval_reports_success_and_subtask_rates(tmp_path):
     make_pickcube_shaped_dataset(tmp_path / "dataset")
-    run_cli(
+    log = run_cli(
         "lerobot-train",
         "--dataset.repo_id=local/pickcube",
         f"--dataset.root={tmp_path / 'dataset'}",
@@ -354,10 +355,17 @@ def test_lerobot_eval_reports_success_and_subtask_rates(tmp_path):
         "--steps=2",
         "--batch_size=2",
         "--num_workers=0",
-        "--env_eval_freq=0",
         "--save_freq=2",
+        # evaluation in the training loop, on our env
+        "--env.type=maniskill",
+        "--env.task=PickCube-v1",
+        "--env.episode_length=5",
+        "--env_eval_freq=2",
+        "--eval.n_episodes=1",
+        "--eval.batch_size=1",
         f"--output_dir={tmp_path / 'train'}",
     )
+    assert "Eval policy at step 2" in log and RATES_KEY in log
     run_cli(
         "lerobot-eval",
         f"--policy.path={tmp_path / 'train/checkpoints/last/pretrained_model'}",
