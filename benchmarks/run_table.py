@@ -3,6 +3,7 @@
     .venv/bin/python benchmarks/run_table.py --profile=cpu --tasks='[PickCube-v1]' \
         --variants='[maxmi,ground_truth,last_state,none]' --seeds='[0]'
 
+Tasks are ManiSkill task ids or `FrankaKitchen-v1` (the `franka_kitchen` env type).
 A cell is (task, variant, seed) under a profile: demos -> lerobot-maxmi-discover -> lerobot-train ->
 lerobot-eval on seen initial configurations (the demos' own seeds) and unseen ones (seeds from
 1,000,000 on). Every finished cell is stored in `<output_dir>/results.json` under its full

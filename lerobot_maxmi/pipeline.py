@@ -15,6 +15,8 @@ import time
 from collections.abc import Callable
 from pathlib import Path
 
+from lerobot_maxmi.envs.configs import KITCHEN_TASK
+
 
 def timed(timings: dict[str, float], stage: str, work: Callable, *args):
     """work(*args), with its wall time in seconds stored as timings[stage]."""
@@ -31,12 +33,17 @@ def run_tool(name: str, *args: str) -> None:
     subprocess.run(command, check=True)
 
 
+def env_flags(task: str) -> tuple[str, ...]:
+    """The flags selecting `task`'s env: Franka Kitchen, or else a ManiSkill task."""
+    env_type = "franka_kitchen" if task == KITCHEN_TASK else "maniskill"
+    return (f"--env.type={env_type}", f"--env.task={task}")
+
+
 def record_demos(task: str, num_episodes: int, root: Path, seed: int = 0) -> None:
-    """Scripted ManiSkill demos at `root`, topped up (never duplicated) when some are already there."""
+    """Scripted demos of `task` at `root`, topped up (never duplicated) when some are already there."""
     run_tool(
         "lerobot-maxmi-demos",
-        "--env.type=maniskill",
-        f"--env.task={task}",
+        *env_flags(task),
         f"--num_episodes={num_episodes}",
         f"--repo_id=local/{root.name}",
         f"--root={root}",
@@ -93,14 +100,13 @@ def train_policy(
 def evaluate_policy(
     checkpoint: Path, task: str, eval_dir: Path, num_episodes: int, seed: int, device: str
 ) -> dict:
-    """lerobot-eval on ManiSkill, one env at a time from episode seed `seed` on; its overall metrics."""
+    """lerobot-eval on `task`, one env at a time from episode seed `seed` on; its overall metrics."""
     shutil.rmtree(eval_dir, ignore_errors=True)
     run_tool(
         "lerobot-eval",
         f"--policy.path={checkpoint}",
         f"--policy.device={device}",
-        "--env.type=maniskill",
-        f"--env.task={task}",
+        *env_flags(task),
         f"--eval.n_episodes={num_episodes}",
         "--eval.batch_size=1",
         f"--seed={seed}",

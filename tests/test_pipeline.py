@@ -88,3 +88,13 @@ def test_a_failed_cell_is_not_recorded(monkeypatch, tmp_path):
 def test_unknown_variant_is_named():
     with pytest.raises(ValueError, match=r"unknown variant \['maxmii'\]; choose from maxmi, maxmi_released"):
         run_table.TableConfig(variants=["maxmii"])
+
+
+def test_kitchen_cells_use_the_kitchen_env(monkeypatch, tmp_path):
+    tools = FakeTools()
+    monkeypatch.setattr(pipeline, "run_tool", tools)
+    config = run_table.TableConfig(tasks=["FrankaKitchen-v1"], variants=["none"], output_dir=tmp_path)
+    run_table.run_table(config)
+    for tool in ("lerobot-maxmi-demos", "lerobot-eval"):
+        assert set(tools.flag(tool, "--env.type")) == {"franka_kitchen"}
+    assert pipeline.env_flags("StackCube-v1") == ("--env.type=maniskill", "--env.task=StackCube-v1")

@@ -20,6 +20,7 @@ ALL_KITCHEN_TASKS = (
 )  # fmt: skip
 
 SUPPORTED_SIM_BACKENDS = ("cpu",)
+KITCHEN_TASK = "FrankaKitchen-v1"  # the gymnasium-robotics id, and the kitchen's task name in our tools
 
 
 @EnvConfig.register_subclass("maniskill")
@@ -102,7 +103,7 @@ class FrankaKitchenEnvConfig(EnvConfig):
     qpos 21), "full" the env's 59-d observation (with velocities).
     """
 
-    task: str | None = "FrankaKitchen-v1"
+    task: str | None = KITCHEN_TASK
     fps: int = 12  # one env step is 0.08 s
     tasks_to_complete: list[str] = field(default_factory=lambda: list(ALL_KITCHEN_TASKS))
     episode_length: int = 280
