@@ -22,21 +22,37 @@ from pathlib import Path
 import draccus
 import torch
 
-from lerobot_maxmi.pipeline import annotate, evaluate_policy, rates, record_demos, timed, train_policy
+from lerobot_maxmi.pipeline import (
+    annotate,
+    cotpc_flags,
+    environment_state_copy,
+    evaluate_policy,
+    rates,
+    record_demos,
+    timed,
+    train_policy,
+)
 
 UNSEEN_SEED = 1_000_000  # far above any demo seed
 
 
 @dataclass(frozen=True)
 class Variant:
-    """How a cell gets its key states: a discovery selector (None: no key states) and its flags."""
+    """How a cell gets its key states (a discovery selector, None: none) and which policy it trains."""
 
     selector: str | None
     discovery_flags: tuple[str, ...] = ()
+    # A LeRobot policy instead of CoTPC, trained on the demos with their state as environment state.
+    builtin_policy_flags: tuple[str, ...] = ()
 
-    @property
-    def policy_type(self) -> str:
-        return "cotpc_maxmi" if self.selector == "maxmi" else "cotpc"
+    def policy_flags(self, context_length: int) -> tuple[str, ...]:
+        if self.builtin_policy_flags:
+            return self.builtin_policy_flags
+        return cotpc_flags("cotpc_maxmi" if self.selector == "maxmi" else "cotpc", context_length)
+
+
+# LeRobot's ACT at its defaults, except chunks sized for 100-step episodes: 20 actions, re-planned every 5.
+ACT_FLAGS = ("--policy.type=act", "--policy.chunk_size=20", "--policy.n_action_steps=5")
 
 
 VARIANTS = {
@@ -49,6 +65,7 @@ VARIANTS = {
     "awe": Variant("awe"),
     "uniform": Variant("uniform"),
     "none": Variant(None),
+    "act": Variant(None, builtin_policy_flags=ACT_FLAGS),  # the outside reference
 }
 
 
@@ -118,10 +135,12 @@ def run_cell(config: dict, profile: Profile, out: Path) -> dict:
             *variant.discovery_flags,
         )
         timed(timings, "discovery", annotate, demos, dataset, variant.selector, *discovery)
-    training = (profile.train_steps, profile.batch_size, profile.context_length, profile.device, seed)
-    checkpoint = timed(
-        timings, "training", train_policy, variant.policy_type, dataset, cell / "train", *training
-    )
+    if variant.builtin_policy_flags:
+        dataset = cell / "dataset"
+        timed(timings, "environment_state", environment_state_copy, demos, dataset)
+    policy = variant.policy_flags(profile.context_length)
+    training = (profile.train_steps, profile.batch_size, profile.device, seed)
+    checkpoint = timed(timings, "training", train_policy, policy, dataset, cell / "train", *training)
     # Seen: the demos' own initial configurations (their seeds start at 0); unseen: fresh seeds.
     splits = {
         "seen": (0, min(profile.eval_episodes, profile.num_demos)),

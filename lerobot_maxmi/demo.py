@@ -18,7 +18,15 @@ from lerobot_maxmi.discovery.quality import dataset_quality, evaluate_selectors,
 from lerobot_maxmi.discovery.selectors import AWEConfig
 from lerobot_maxmi.discovery.train import DiscoveryConfig
 from lerobot_maxmi.episode_metadata import GT_KEY_FRAMES, read_episode_column
-from lerobot_maxmi.pipeline import annotate, evaluate_policy, rates, record_demos, timed, train_policy
+from lerobot_maxmi.pipeline import (
+    annotate,
+    cotpc_flags,
+    evaluate_policy,
+    rates,
+    record_demos,
+    timed,
+    train_policy,
+)
 
 BASELINES = ["uniform", "awe", "last_state"]
 
@@ -66,8 +74,9 @@ def main(cfg: DemoConfig) -> None:
     ]
     timed(timings, "demos", record_demos, cfg.task, cfg.num_episodes, source, cfg.seed)
     timed(timings, "discovery", annotate, source, annotated, "maxmi", *discovery_flags)
-    training = (cfg.train_steps, cfg.batch_size, cfg.context_length, "cpu", cfg.seed)
-    checkpoint = timed(timings, "training", train_policy, "cotpc_maxmi", annotated, run_dir, *training)
+    policy = cotpc_flags("cotpc_maxmi", cfg.context_length)
+    training = (cfg.train_steps, cfg.batch_size, "cpu", cfg.seed)
+    checkpoint = timed(timings, "training", train_policy, policy, annotated, run_dir, *training)
     # Seeds from 10000 on: initial configurations the demos never used.
     unseen = (cfg.eval_episodes, cfg.seed + 10_000, "cpu")
     overall = timed(timings, "evaluation", evaluate_policy, checkpoint, cfg.task, eval_dir, *unseen)

@@ -15,6 +15,7 @@ import time
 from collections.abc import Callable
 from pathlib import Path
 
+from lerobot_maxmi.demos.dataset_writer import copy_with_environment_state
 from lerobot_maxmi.envs.configs import KITCHEN_TASK
 
 
@@ -67,21 +68,20 @@ def annotate(source: Path, output: Path, selector: str, *discovery_flags: str) -
 
 
 def train_policy(
-    policy_type: str,
+    policy_flags: tuple[str, ...],
     dataset: Path,
     run_dir: Path,
     steps: int,
     batch_size: int,
-    context_length: int,
     device: str,
     seed: int,
 ) -> Path:
-    """Train with lerobot-train; returns the last checkpoint's pretrained_model directory."""
+    """Train with lerobot-train (`policy_flags`: --policy.type and its options); returns the last
+    checkpoint's pretrained_model directory."""
     shutil.rmtree(run_dir, ignore_errors=True)  # lerobot-train refuses an existing run directory
     run_tool(
         "lerobot-train",
-        f"--policy.type={policy_type}",
-        f"--policy.context_length={context_length}",
+        *policy_flags,
         f"--policy.device={device}",
         "--policy.push_to_hub=false",
         f"--dataset.repo_id=local/{dataset.name}",
@@ -95,6 +95,16 @@ def train_policy(
         f"--output_dir={run_dir}",
     )
     return run_dir / "checkpoints" / "last" / "pretrained_model"
+
+
+def cotpc_flags(policy_type: str, context_length: int) -> tuple[str, ...]:
+    return (f"--policy.type={policy_type}", f"--policy.context_length={context_length}")
+
+
+def environment_state_copy(demos: Path, output: Path) -> None:
+    """The demos with their state also as `observation.environment_state` (for ACT / Diffusion)."""
+    shutil.rmtree(output, ignore_errors=True)
+    copy_with_environment_state(demos, output, f"local/{output.name}")
 
 
 def evaluate_policy(

@@ -17,6 +17,7 @@ import pytest
 from lerobot.envs.configs import EnvConfig
 from lerobot.envs.utils import NEW_ROLLOUT_OPTION
 
+from lerobot_maxmi.demos.dataset_writer import copy_with_environment_state
 from lerobot_maxmi.envs import eval_hooks
 from lerobot_maxmi.envs.configs import ManiSkillEnvConfig
 from lerobot_maxmi.envs.maniskill_sim import TASKS, has_render_device, missing_assets, restrict_faucet_models
@@ -390,17 +391,9 @@ def test_lerobot_eval_reports_success_and_subtask_rates(tmp_path):
 @pytest.mark.slow
 def test_lerobot_eval_runs_a_builtin_act_checkpoint(tmp_path):
     """LeRobot's own ACT, trained a few steps on a 3-episode set, evaluated on PickCube through our env."""
-    demos = make_pickcube_shaped_dataset(tmp_path / "demos", num_episodes=3)
-    # docs/envs_and_demos.md's recipe: ACT needs `observation.environment_state` when there are no images.
-    from lerobot.datasets.dataset_tools import add_features
-
-    state = demos.meta.features["observation.state"]
-    add_features(
-        demos,
-        {"observation.environment_state": (lambda row, _episode, _frame: row["observation.state"], state)},
-        output_dir=tmp_path / "dataset",
-        repo_id="local/pickcube",
-    )
+    make_pickcube_shaped_dataset(tmp_path / "demos", num_episodes=3)
+    copied = copy_with_environment_state(tmp_path / "demos", tmp_path / "dataset", "local/pickcube")
+    np.testing.assert_array_equal(copied[7]["observation.environment_state"], copied[7]["observation.state"])
     tiny_act = {
         "chunk_size": 4, "n_action_steps": 4, "dim_model": 16, "n_heads": 2, "dim_feedforward": 32,
         "n_encoder_layers": 1, "n_decoder_layers": 1, "use_vae": "false",

@@ -98,3 +98,15 @@ def test_kitchen_cells_use_the_kitchen_env(monkeypatch, tmp_path):
     for tool in ("lerobot-maxmi-demos", "lerobot-eval"):
         assert set(tools.flag(tool, "--env.type")) == {"franka_kitchen"}
     assert pipeline.env_flags("StackCube-v1") == ("--env.type=maniskill", "--env.task=StackCube-v1")
+
+
+def test_act_reference_trains_on_a_copy_with_environment_state(monkeypatch, tmp_path):
+    tools, copies = FakeTools(), []
+    monkeypatch.setattr(pipeline, "run_tool", tools)
+    monkeypatch.setattr(pipeline, "copy_with_environment_state", lambda *args: copies.append(args))
+    run_table.run_table(run_table.TableConfig(variants=["act"], output_dir=tmp_path))
+    demos, dataset, repo_id = copies[0]
+    assert demos.name == "PickCube-v1_100" and repo_id == f"local/{dataset.name}"
+    assert tools.flag("lerobot-train", "--policy.type") == ["act"]
+    assert tools.flag("lerobot-train", "--dataset.root") == [str(dataset)]
+    assert not tools.flag("lerobot-train", "--policy.context_length")  # a CoTPC option

@@ -13,7 +13,7 @@ from pathlib import Path
 import datasets
 import numpy as np
 from lerobot.datasets.lerobot_dataset import LeRobotDataset
-from lerobot.utils.constants import ACTION, HF_LEROBOT_HOME, OBS_STATE
+from lerobot.utils.constants import ACTION, HF_LEROBOT_HOME, OBS_ENV_STATE, OBS_STATE
 
 from lerobot_maxmi.demos.episode import Episode
 from lerobot_maxmi.episode_metadata import (
@@ -151,3 +151,15 @@ def push_to_hub(repo_id: str, root: Path) -> None:
             f"Push it later with `LeRobotDataset({repo_id!r}, root={str(root)!r}).push_to_hub()` once "
             "online and logged in (`hf auth login`)."
         ) from error
+
+
+def copy_with_environment_state(source_root: Path, output_root: Path, repo_id: str) -> LeRobotDataset:
+    """A copy of the demos at `source_root` whose state is also stored as `observation.environment_state`:
+    LeRobot's ACT and Diffusion need that input when there are no images (our env types observe it too).
+    The source is only read."""
+    from lerobot.datasets.dataset_tools import add_features
+
+    source = LeRobotDataset(repo_id, root=source_root)
+    state = source.meta.features[OBS_STATE]
+    copy_state = (lambda row, _episode, _frame: row[OBS_STATE], state)
+    return add_features(source, {OBS_ENV_STATE: copy_state}, output_dir=output_root, repo_id=repo_id)
