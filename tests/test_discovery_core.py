@@ -11,7 +11,7 @@ from lerobot_maxmi.discovery.losses import (
     released_maxmi_loss,
     released_shifted_states,
 )
-from lerobot_maxmi.discovery.nms import key_frames, suppress_nearby
+from lerobot_maxmi.discovery.nms import kept_indices, shared_concepts
 from lerobot_maxmi.mi import load_estimator
 
 
@@ -92,9 +92,8 @@ def test_resampled_indices_map_back_to_episode_frames():
 
 
 def test_nms_keeps_the_most_confident_of_close_concepts():
-    assert suppress_nearby([10, 12, 30, 31, 50], [0.2, 0.9, 0.5, 0.4, 0.1], radius=3) == [12, 30, 50]
-    with_final = key_frames(
-        [10, 12, 97], [0.2, 0.9, 0.8], episode_length=100, radius_fraction=0.05, append_final=True
-    )
-    assert with_final == [12, 99]  # 97 is within 5 frames of the appended final frame
-    assert key_frames([40], [1.0], episode_length=100, radius_fraction=0.05, append_final=False) == [40]
+    positions, scores = [10, 12, 30, 31, 50], [0.2, 0.9, 0.5, 0.4, 0.1]
+    assert kept_indices(positions, scores, radius=3) == [1, 2, 4]  # sorted by position
+    # With the final frame appended (at 1.0), a concept within the radius of it is dropped too.
+    assert shared_concepts([0.10, 0.12, 0.97], [0.2, 0.9, 0.8], 0.05, append_final=True) == [1]
+    assert shared_concepts([0.40], [1.0], 0.05, append_final=False) == [0]

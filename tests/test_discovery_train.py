@@ -3,7 +3,7 @@
 import pytest
 import torch
 
-from lerobot_maxmi.discovery.train import DiscoveryConfig, KSLNetArchitecture, localize, train_localizer
+from lerobot_maxmi.discovery.train import DiscoveryConfig, KSLNetArchitecture, fit_localizer, train_localizer
 
 
 def tiny_config(**overrides):
@@ -25,8 +25,8 @@ def random_walks(count=8, seed=0):
 @pytest.mark.parametrize("objective", ["paper", "released"])
 def test_same_seed_gives_same_key_frames(objective):
     episodes, cfg = random_walks(), tiny_config(objective=objective)
-    first = localize(train_localizer(episodes, cfg), episodes, cfg)
-    second = localize(train_localizer(episodes, cfg), episodes, cfg)
+    first = fit_localizer(episodes, cfg).key_frames(episodes)
+    second = fit_localizer(episodes, cfg).key_frames(episodes)
     assert first == second
     for frames, states in zip(first, episodes, strict=True):
         assert frames == sorted(frames) and frames[-1] == len(states) - 1  # final frame appended
@@ -87,7 +87,7 @@ def test_maxmi_finds_planted_pauses():
         append_final_frame=False,
         model=KSLNetArchitecture(encoder_dims=(64, 64), head_dims=(64,)),
     )
-    found = localize(train_localizer(episodes, cfg), episodes, cfg)
+    found = fit_localizer(episodes, cfg).key_frames(episodes)
     errors = torch.tensor(
         [
             [min(abs(frame - centre) for frame in frames) / len(states) for centre in centres]

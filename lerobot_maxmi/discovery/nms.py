@@ -16,11 +16,6 @@ def kept_indices(positions: Sequence[float], scores: Sequence[float], radius: fl
     return sorted(kept, key=lambda i: positions[i])
 
 
-def suppress_nearby(frames: Sequence[int], scores: Sequence[float], radius: float) -> list[int]:
-    """Greedy NMS: highest score first; a frame within `radius` of a kept frame is dropped."""
-    return [frames[i] for i in kept_indices(frames, scores, radius)]
-
-
 def kept_concepts(
     positions: Sequence[float], scores: Sequence[float], radius: float, end: float | None
 ) -> list[int]:
@@ -28,19 +23,6 @@ def kept_concepts(
     also drop those within `radius` of it, since the final frame stands for them."""
     kept = kept_indices(positions, scores, radius)
     return kept if end is None else [i for i in kept if end - positions[i] > radius]
-
-
-def key_frames(
-    frames: Sequence[int],
-    scores: Sequence[float],
-    episode_length: int,
-    radius_fraction: float,
-    append_final: bool,
-) -> list[int]:
-    """An episode's key frames: NMS with a radius relative to its length, plus (optionally) its last frame."""
-    final = episode_length - 1
-    kept = kept_concepts(frames, scores, radius_fraction * episode_length, final if append_final else None)
-    return [frames[i] for i in kept] + ([final] if append_final else [])
 
 
 def shared_concepts(

@@ -8,9 +8,9 @@ from accelerate import Accelerator
 from torch import Tensor
 from tqdm import tqdm
 
-from lerobot_maxmi.discovery.ksl_net import KSLNet, soft_argmax, stack_resampled, to_episode_frame
+from lerobot_maxmi.discovery.ksl_net import KSLNet, soft_argmax, stack_resampled
 from lerobot_maxmi.discovery.losses import diversity_loss, maxmi_loss, ordering_loss, released_maxmi_loss
-from lerobot_maxmi.discovery.nms import key_frames, shared_concepts
+from lerobot_maxmi.discovery.nms import shared_concepts
 from lerobot_maxmi.discovery.processor import MaxmiDiscoveryStep
 from lerobot_maxmi.mi import ESTIMATORS, STATE_MI_MODES, load_estimator
 from lerobot_maxmi.mi.estimators import resolve_device
@@ -144,17 +144,6 @@ def train_localizer(episodes: list[Tensor], cfg: DiscoveryConfig) -> KSLNet:
         accelerator.num_processes,
     )
     return accelerator.unwrap_model(net).eval()
-
-
-def localize(net: KSLNet, episodes: list[Tensor], cfg: DiscoveryConfig) -> list[list[int]]:
-    """Key frames of each episode: localized concepts, per-episode NMS, and (optionally) the final frame."""
-    check_episodes(episodes, 1)
-    t_hat, confidence = net.locate(episodes)
-    result = []
-    for states, t, score in zip(episodes, t_hat, confidence, strict=True):
-        frames = to_episode_frame(t, len(states), net.length).tolist()
-        result.append(key_frames(frames, score.tolist(), len(states), cfg.nms_radius, cfg.append_final_frame))
-    return result
 
 
 def fit_localizer(episodes: list[Tensor], cfg: DiscoveryConfig) -> MaxmiDiscoveryStep:
