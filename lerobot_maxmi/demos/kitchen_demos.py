@@ -1,7 +1,7 @@
 """Franka Kitchen demonstrations for `lerobot-maxmi-demos --env.type=franka_kitchen`.
 
 Like the relay-kitchen data, each attempt chains `TASKS_PER_DEMO` distinct subtasks in a random
-order drawn from the expert's repertoire (within `--env.tasks_to_complete`). An attempt succeeds when
+order drawn from `--env.tasks_to_complete` (the expert does all 7). An attempt succeeds when
 every subtask of its chain is complete within `DEMO_MAX_STEPS` (longer than the 280-step evaluation
 limit: the expert is slower than a teleoperator). Key frames: the first frame at which each subtask
 is complete, named after it, in completion order; the last subtask completes on the final frame,
@@ -11,7 +11,7 @@ which is the last key frame (conventions: `episode.py`).
 import numpy as np
 
 from lerobot_maxmi.demos.episode import FINAL, Episode
-from lerobot_maxmi.demos.kitchen_expert import MUST_PRECEDE, RELIABLE_TASKS, KitchenExpert
+from lerobot_maxmi.demos.kitchen_expert import MUST_PRECEDE, KitchenExpert
 from lerobot_maxmi.demos.rollout import Attempt
 from lerobot_maxmi.envs.kitchen import FrankaKitchenGymEnv, task_completed
 
@@ -32,12 +32,7 @@ class KitchenDemoSource:
     def __init__(self, env_cfg, action_noise: float = 0.0, randomize_expert: bool = True):
         self.env_cfg, self.fps = env_cfg, env_cfg.fps
         self.action_noise, self.randomize_expert = action_noise, randomize_expert
-        self.repertoire = [task for task in env_cfg.tasks_to_complete if task in RELIABLE_TASKS]
-        if not self.repertoire:
-            raise ValueError(
-                f"The kitchen expert can do none of {env_cfg.tasks_to_complete}; "
-                f"it supports {list(RELIABLE_TASKS)}."
-            )
+        self.repertoire = list(env_cfg.tasks_to_complete)
         self.chain_length = min(TASKS_PER_DEMO, len(self.repertoire))
         self.task = demo_task(self.chain_length)
         self.env = None

@@ -5,8 +5,9 @@ action space: 9 joint velocities. Each step it solves inverse kinematics on a sc
 model for a Cartesian end-effector target (home orientation: gripper pointing into the kitchen,
 +y, optionally rolled about it), then drives the joints there. Each subtask is a short list of
 phases (approach, manipulate, back off); targets follow the moving handle, so doors are pulled along
-their own arcs, and burner knobs are grasped and turned by rolling the wrist. Between subtasks the arm
-passes a via point solved from the home posture, so errors in its redundant DOF do not pile up.
+their own arcs, burner knobs are grasped and turned by rolling the wrist, and the kettle is carried by
+its handle. Between subtasks the arm passes a via point solved from the home posture, and settles
+there, so errors in its redundant DOF do not pile up.
 
 Diversity comes from a per-episode `rng`: approach offsets, speeds and via points are jittered, and
 the recorder adds action noise.
@@ -190,6 +191,24 @@ class KitchenExpert:
         delta = np.asarray(delta, dtype=float)
         return lambda data: data.site(site).xpos + delta
 
+    def anchored(self, site: str, *deltas) -> list[Callable]:
+        """Fixed points at `deltas` from where `site` is when the first of them is asked for."""
+        anchor = {}
+
+        def point(delta):
+            return lambda data: anchor.setdefault("p", data.site(site).xpos.copy()) + delta
+
+        return [point(np.asarray(delta, dtype=float)) for delta in deltas]
+
+    def lead(self, target: Callable, distance: float) -> Callable:
+        """A point at most `distance` ahead of the end effector on its way to `target`: a slow move."""
+
+        def carrot(data):
+            step = target(data) - self.ee(data)
+            return self.ee(data) + step * min(1.0, distance / max(np.linalg.norm(step), 1e-9))
+
+        return carrot
+
     # Subtask plans ---------------------------------------------------------------------------------
 
     def _plan(self, task: str, rng: np.random.Generator) -> list[Phase]:
@@ -210,10 +229,15 @@ class KitchenExpert:
         # Then pass a via point in front of the kitchen: straight paths from the open microwave to the
         # switches and knobs hit its door.
         via = self.fixed(VIA_POINT + rng.uniform(-0.04, 0.04, size=3))
+        near_via = self.near(via, 0.05)
+
+        def settled_at_via(data):  # the redundant DOF too: the end effector gets there first
+            return near_via(data) and np.abs(data.qvel[ARM]).max() < STALL_SPEED
+
         return [
             *plan,
             Phase(retreat, OPEN, self.near(retreat, 0.03), 20),
-            Phase(via, OPEN, self.near(via, 0.05), 25, from_home=True),
+            Phase(via, OPEN, settled_at_via, 25, from_home=True),
         ]
 
 
@@ -289,21 +313,55 @@ def _turn_knob(expert, completed, site, joint, jitter, rng) -> list[Phase]:
     ]
 
 
-KETTLE_PUSH_START = [0.0, -0.155, -0.21]  # behind the kettle's body, below the handle (kettle_site)
+def _carry_kettle(expert, jitter, rng) -> list[Phase]:
+    """Grasp the kettle handle's left post, lift the kettle, carry it to the back burner, set it down.
+
+    (Pushed, it yaws and stalls.) Held by one post it hangs a little tilted, so it is lifted well clear
+    of the stove, and carried slowly so that it does not swing. It moves right as well as back: its
+    spout would catch on the microwave. The wrist is rolled a little throughout: unrolled, joint 7
+    reaches its limit before the back burner.
+    """
+    grasp = KETTLE_POST + jitter * np.array([0.2, 0.2, 1.0])
+    front = grasp + np.array([0.0, -rng.uniform(0.08, 0.12), 0.0])
+    at_front, at_post = expert.offset("kettle_site", front), expert.offset("kettle_site", grasp)
+    lift = np.array([0.0, 0.0, rng.uniform(0.08, 0.1)])
+    carry = np.array([rng.uniform(0.05, 0.07), rng.uniform(0.25, 0.29), 0.0])
+    back = np.array([0.0, -0.08, 0.0])
+    # Fixed from the grasp on: up, over the back burner, down, and straight back off the post.
+    raised, over, down, clear = expert.anchored(
+        "kettle_site", grasp + lift, grasp + lift + carry, grasp + carry, grasp + carry + back
+    )
+    roll_angle = rng.uniform(-0.35, -0.25)
+
+    def roll(data):
+        return roll_angle
+
+    return [
+        Phase(at_front, OPEN, expert.near(at_front, 0.03), 40, roll),
+        Phase(at_post, OPEN, expert.near(at_post, 0.012), 30, roll),
+        Phase(at_post, CLOSED, _after(5), 6, roll),
+        Phase(expert.lead(raised, 0.02), CLOSED, expert.near(raised, 0.015), 20, roll),
+        Phase(expert.lead(over, 0.03), CLOSED, expert.near(over, 0.02), 50, roll),
+        Phase(expert.lead(down, 0.02), CLOSED, expert.near(down, 0.015), 25, roll),
+        Phase(down, OPEN, _after(6), 6, roll),
+        Phase(clear, OPEN, expert.near(clear, 0.02), 10, roll),
+    ]
+
+
+# The handle's left post (vertical, 23 mm radius) from kettle_site, atop the handle: the post ends up
+# between the middles of the finger pads.
+KETTLE_POST = np.array([-0.091, -0.02, -0.08])
 PLANS = {
     "slide cabinet": lambda e, c, j, r: _push(e, c, "slide_site", [-0.07, 0, 0], [1, 0, 0], 0.3, j, r),
     "light switch": lambda e, c, j, r: _push(
         e, c, "light_site", [0.07, 0.0, 0], [-1, 0.3, 0], 0.25, j * 0.3, r
     ),
-    "kettle": lambda e, c, j, r: _push(e, c, "kettle_site", KETTLE_PUSH_START, [0, 1, 0], 0.5, j * 0.3, r),
+    "kettle": lambda e, c, j, r: _carry_kettle(e, j, r),
     "bottom burner": lambda e, c, j, r: _turn_knob(e, c, "knob2_site", 11, j, r),
     "top burner": lambda e, c, j, r: _turn_knob(e, c, "knob4_site", 15, j, r),
     "microwave": lambda e, c, j, r: _pull_door(e, c, "microhandle_site", 22, -0.3, [0, 0, 0], j, r),
     "hinge cabinet": lambda e, c, j, r: _pull_door(e, c, "hinge_site2", 21, 0.2, [0, 0, -0.05], j * 0.3, r),
 }
 
-# Subtasks the expert completes reliably within a chain; demos draw their chains from these. Pushing
-# the kettle completes it only about half of the time (it yaws and catches on the stove).
-RELIABLE_TASKS = tuple(task for task in PLANS if task != "kettle")
 # The open hinge-cabinet door swings in front of the slide cabinet's handle.
 MUST_PRECEDE = {("slide cabinet", "hinge cabinet")}
