@@ -340,6 +340,22 @@ def run_cli(name: str, *args: str) -> str:
     return result.stdout + result.stderr
 
 
+def evaluate_last_checkpoint(tmp_path: Path, episodes: int) -> dict:
+    """lerobot-eval of the run under tmp_path/train on PickCube (10-step episodes); its eval_info.json."""
+    run_cli(
+        "lerobot-eval",
+        f"--policy.path={tmp_path / 'train/checkpoints/last/pretrained_model'}",
+        "--env.type=maniskill",
+        "--env.task=PickCube-v1",
+        "--env.episode_length=10",
+        f"--eval.n_episodes={episodes}",
+        "--eval.batch_size=1",
+        "--policy.device=cpu",
+        f"--output_dir={tmp_path / 'eval'}",
+    )
+    return json.loads((tmp_path / "eval/eval_info.json").read_text())
+
+
 @pytest.mark.slow
 def test_lerobot_eval_reports_success_and_subtask_rates(tmp_path):
     make_pickcube_shaped_dataset(tmp_path / "dataset")
@@ -367,18 +383,7 @@ def test_lerobot_eval_reports_success_and_subtask_rates(tmp_path):
         f"--output_dir={tmp_path / 'train'}",
     )
     assert "Eval policy at step 2" in log and RATES_KEY in log
-    run_cli(
-        "lerobot-eval",
-        f"--policy.path={tmp_path / 'train/checkpoints/last/pretrained_model'}",
-        "--env.type=maniskill",
-        "--env.task=PickCube-v1",
-        "--env.episode_length=10",
-        "--eval.n_episodes=2",
-        "--eval.batch_size=1",
-        "--policy.device=cpu",
-        f"--output_dir={tmp_path / 'eval'}",
-    )
-    eval_info = json.loads((tmp_path / "eval/eval_info.json").read_text())
+    eval_info = evaluate_last_checkpoint(tmp_path, episodes=2)
     overall = eval_info["overall"]
     assert overall["n_episodes"] == 2
     assert 0 <= overall["pc_success"] <= 100
@@ -413,17 +418,6 @@ def test_lerobot_eval_runs_a_builtin_act_checkpoint(tmp_path):
         "--save_freq=2",
         f"--output_dir={tmp_path / 'train'}",
     )
-    run_cli(
-        "lerobot-eval",
-        f"--policy.path={tmp_path / 'train/checkpoints/last/pretrained_model'}",
-        "--env.type=maniskill",
-        "--env.task=PickCube-v1",
-        "--env.episode_length=10",
-        "--eval.n_episodes=1",
-        "--eval.batch_size=1",
-        "--policy.device=cpu",
-        f"--output_dir={tmp_path / 'eval'}",
-    )
-    overall = json.loads((tmp_path / "eval/eval_info.json").read_text())["overall"]
+    overall = evaluate_last_checkpoint(tmp_path, episodes=1)["overall"]
     assert overall["n_episodes"] == 1
     assert overall[RATES_KEY].keys() == {"grasp", "success"}
