@@ -87,6 +87,25 @@ def test_create_envs_reset_step_close():
     vector_env.close()
 
 
+def test_without_a_gl_backend_the_env_runs_unrendered(monkeypatch, caplog):
+    import mujoco
+
+    from lerobot_maxmi.envs import kitchen
+
+    def no_context(*_args):
+        raise RuntimeError("no EGL display")
+
+    monkeypatch.setattr(mujoco, "GLContext", no_context)
+    assert not can_render.__wrapped__()  # the uncached check
+    assert "MuJoCo cannot render" in caplog.text and "no EGL display" in caplog.text
+    monkeypatch.setattr(kitchen, "can_render", lambda: False)
+    env = FrankaKitchenGymEnv(["microwave"], max_episode_steps=5)
+    assert env.render_mode is None and env.render() is None  # lerobot-eval then skips videos
+    env.reset(seed=0)
+    env.step(np.zeros(9))
+    env.close()
+
+
 def test_env_reports_completed_tasks():
     env = FrankaKitchenGymEnv(["microwave", "slide cabinet"], max_episode_steps=10, render=False)
     env.reset(seed=0)
