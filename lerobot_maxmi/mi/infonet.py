@@ -115,15 +115,29 @@ class InfoNet(nn.Module, PyTorchModelHubMixin, library_name="lerobot_maxmi", tag
         is exactly rank 3 in this form.
         """
         axis = self.embed_axis(fourier_features(self.grid_centres.to(latents.dtype), self.num_frequencies))
-        queries = torch.cat([axis + self.axis_id[0], axis + self.axis_id[1]]).expand(latents.shape[0], -1, -1)
-        context = self.norm_latents(latents)
-        features = (
-            queries + self.read_latents(self.norm_axis(queries), context, context, need_weights=False)[0]
-        )
+        queries = torch.cat([axis + self.axis_id[0], axis + self.axis_id[1]])  # (2G, dim): one set for all
+        features = queries + self._read_latents(queries, self.norm_latents(latents))
         features = self.critic_out(features)  # (B, 2G, R + 1)
         columns, rows = features.split(self.grid_size, dim=1)  # columns: u axis, rows: v axis
         table = rows[..., :-1] @ columns[..., :-1].transpose(1, 2) / math.sqrt(rows.shape[-1] - 1)
         return table + rows[..., -1:] + columns[..., -1].unsqueeze(1)
+
+    def _read_latents(self, queries: Tensor, context: Tensor) -> Tensor:
+        """`read_latents` attention of the (Q, dim) queries to each set's (B, L, dim) context -> (B, Q, dim).
+
+        The queries are the same for every set, so they are normalized and projected once, not B times
+        as nn.MultiheadAttention would: the same result, and the critic table costs about a third less.
+        """
+        attention, dim = self.read_latents, queries.shape[-1]
+        weights, biases = attention.in_proj_weight.split(dim), attention.in_proj_bias.split(dim)
+
+        def heads(projected: Tensor) -> Tensor:  # (..., N, dim) -> (..., heads, N, dim / heads)
+            return projected.unflatten(-1, (attention.num_heads, -1)).transpose(-3, -2)
+
+        query = heads(F.linear(self.norm_axis(queries), weights[0], biases[0]))
+        key, value = (heads(F.linear(context, w, b)) for w, b in zip(weights[1:], biases[1:], strict=True))
+        read = F.scaled_dot_product_attention(query.expand(context.shape[0], -1, -1, -1), key, value)
+        return attention.out_proj(read.transpose(1, 2).flatten(-2))
 
     def regression(self, latents: Tensor) -> Tensor:
         return F.softplus(self.regression_out(latents.mean(dim=1)).squeeze(-1))
