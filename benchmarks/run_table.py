@@ -22,6 +22,7 @@ from pathlib import Path
 import draccus
 import torch
 
+from lerobot_maxmi.envs.kitchen import NUM_TASKS_COMPLETED
 from lerobot_maxmi.pipeline import (
     annotate,
     cotpc_flags,
@@ -34,6 +35,7 @@ from lerobot_maxmi.pipeline import (
 )
 
 UNSEEN_SEED = 1_000_000  # far above any demo seed
+MEAN_METRICS = {NUM_TASKS_COMPLETED}  # means over episodes; every other metric is a % of episodes
 
 
 @dataclass(frozen=True)
@@ -183,10 +185,10 @@ def save_text(path: Path, text: str) -> None:
     os.replace(tmp, path)
 
 
-def mean_spread(values: list[float]) -> str:
+def mean_spread(values: list[float], digits: int) -> str:
     if len(values) == 1:
-        return f"{values[0]:.0f}"
-    return f"{statistics.mean(values):.0f} ± {statistics.stdev(values):.0f}"
+        return f"{values[0]:.{digits}f}"
+    return f"{statistics.mean(values):.{digits}f} ± {statistics.stdev(values):.{digits}f}"
 
 
 def machine() -> str:
@@ -194,10 +196,15 @@ def machine() -> str:
     return f"{platform.machine()}, {os.cpu_count()} cores, {gpu}"
 
 
+def unit(metric: str) -> str:
+    return "(mean)" if metric in MEAN_METRICS else "%"
+
+
 def variant_row(variant: str, cells: list[dict], rate_names: list[str]) -> str:
     def both(name: str) -> str:
-        seen = mean_spread([cell["seen"][name] for cell in cells])
-        return f"{seen} / {mean_spread([cell['unseen'][name] for cell in cells])}"
+        digits = 2 if name in MEAN_METRICS else 0
+        seen, unseen = ([cell[split][name] for cell in cells] for split in ("seen", "unseen"))
+        return f"{mean_spread(seen, digits)} / {mean_spread(unseen, digits)}"
 
     return "| " + " | ".join([variant, str(len(cells)), *map(both, rate_names)]) + " |"
 
@@ -212,7 +219,7 @@ def markdown_tables(results: dict) -> str:
     sections = [f"Machine: {machine()}"]
     for (task, sizes), by_variant in sorted(groups.items()):
         rate_names = list(next(iter(by_variant.values()))[0]["unseen"])
-        header = ["variant", "seeds", *(f"{name} % (seen / unseen)" for name in rate_names)]
+        header = ["variant", "seeds", *(f"{name} {unit(name)} (seen / unseen)" for name in rate_names)]
         lines = [
             f"### {task}",
             ", ".join(f"{key} {value}" for key, value in json.loads(sizes).items()),

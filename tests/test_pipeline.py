@@ -110,3 +110,13 @@ def test_act_reference_trains_on_a_copy_with_environment_state(monkeypatch, tmp_
     assert tools.flag("lerobot-train", "--policy.type") == ["act"]
     assert tools.flag("lerobot-train", "--dataset.root") == [str(dataset)]
     assert not tools.flag("lerobot-train", "--policy.context_length")  # a CoTPC option
+
+
+def test_task_counts_are_means_not_percentages():
+    cell = {
+        "seen": {"tasks_ge_1": 15.0, "num_tasks_completed": 0.19},
+        "unseen": {"tasks_ge_1": 13.0, "num_tasks_completed": 0.13},
+    }
+    row = run_table.variant_row("none", [cell], ["tasks_ge_1", "num_tasks_completed"])
+    assert row == "| none | 1 | 15 / 13 | 0.19 / 0.13 |"
+    assert run_table.unit("num_tasks_completed") == "(mean)" and run_table.unit("tasks_ge_1") == "%"
