@@ -22,7 +22,7 @@ from pathlib import Path
 import draccus
 import torch
 
-from lerobot_maxmi.envs.kitchen import NUM_TASKS_COMPLETED
+from lerobot_maxmi.envs.configs import NUM_TASKS_COMPLETED
 from lerobot_maxmi.pipeline import (
     annotate,
     cotpc_flags,

@@ -204,9 +204,9 @@ def select_key_frames(cfg: AnnotateConfig, source: LeRobotDataset):
 
 def build_output(cfg: AnnotateConfig, source: LeRobotDataset, staging: Path) -> Path:
     """Write the annotated dataset under `staging`; returns its root."""
-    state_dim = check_state_feature(source.meta.features, cfg.state_key)
     states, frames, selector = select_key_frames(cfg, source)
     episodes = list(states.values())
+    state_dim = episodes[0].shape[-1]
     num_key_states, key_states = padded_key_states(episodes, list(frames.values()))
     by_episode = dict(zip(states, key_states, strict=True))
     logging.info("%d key states of dim %d per episode (selector %s)", num_key_states, state_dim, cfg.selector)

@@ -21,6 +21,7 @@ ALL_KITCHEN_TASKS = (
 
 SUPPORTED_SIM_BACKENDS = ("cpu",)
 KITCHEN_TASK = "FrankaKitchen-v1"  # the gymnasium-robotics id, and the kitchen's task name in our tools
+NUM_TASKS_COMPLETED = "num_tasks_completed"  # the kitchen's score, a milestone that is a count
 
 
 @EnvConfig.register_subclass("maniskill")

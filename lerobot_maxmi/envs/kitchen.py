@@ -21,7 +21,7 @@ from gymnasium_robotics.envs.franka_kitchen.kitchen_env import (  # noqa: E402
     OBS_ELEMENT_INDICES,
 )
 
-from lerobot_maxmi.envs.configs import KITCHEN_TASK  # noqa: E402
+from lerobot_maxmi.envs.configs import KITCHEN_TASK, NUM_TASKS_COMPLETED  # noqa: E402
 from lerobot_maxmi.envs.milestones import MILESTONES_KEY  # noqa: E402
 from lerobot_maxmi.envs.observation import state_observation, state_observation_space  # noqa: E402
 
@@ -29,7 +29,6 @@ logger = logging.getLogger(__name__)
 
 GYM_ID = KITCHEN_TASK
 ALL_TASKS = tuple(OBS_ELEMENT_GOALS)  # the 7 subtasks, in gymnasium-robotics' order
-NUM_TASKS_COMPLETED = "num_tasks_completed"
 FPS = 12  # one env step is 0.08 s (12.5 Hz); LeRobot needs an integer rate
 RENDER_SIZE = 224
 
