@@ -72,3 +72,32 @@ def test_command_line_entry_point(tmp_path):
     result = subprocess.run([command, *args], capture_output=True, text=True, timeout=300)
     assert result.returncode == 0, result.stderr
     assert (tmp_path / FINAL_DIR / "model.safetensors").exists()
+
+
+def test_regression_head_stage_trains_only_the_head(tmp_path):
+    base = pretrain(tiny_config(tmp_path / "base", steps=2))
+
+    def head_stage(name, steps):
+        cfg = tiny_config(tmp_path / name, steps=steps)
+        cfg.init_from, cfg.trainable = str(base), "regression_head"
+        return weights(pretrain(cfg))
+
+    untrained, trained, backbone = head_stage("start", 0), head_stage("head", 3), weights(base)
+    for key, tensor in trained.items():
+        if key.startswith("regression_head."):
+            assert not torch.equal(tensor, untrained[key]), f"{key} did not learn"
+        else:
+            torch.testing.assert_close(tensor, backbone[key], rtol=0, atol=0, msg=key)
+
+
+def test_regression_head_stage_needs_init_from():
+    with pytest.raises(ValueError, match="--init_from"):
+        PretrainMIConfig(trainable="regression_head")
+
+
+def test_init_from_an_infonet_of_other_sizes_is_rejected(tmp_path):
+    base = pretrain(tiny_config(tmp_path / "base", steps=1))
+    cfg = tiny_config(tmp_path / "other", steps=1)
+    cfg.init_from, cfg.model.dim = str(base), 8
+    with pytest.raises(ValueError, match="other sizes"):
+        pretrain(cfg)

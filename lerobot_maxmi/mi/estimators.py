@@ -13,7 +13,7 @@ from sklearn.feature_selection import mutual_info_regression
 from torch import Tensor
 
 from lerobot_maxmi.mi.infonet import HEADS, InfoNet
-from lerobot_maxmi.mi.normalize import check_pairs, rank_normalize
+from lerobot_maxmi.mi.normalize import check_pairs, gaussian_copula_mi, rank_normalize
 
 SHIPPED_INFONET = files("lerobot_maxmi.mi") / "weights" / "infonet"
 
@@ -53,11 +53,7 @@ class GaussianCopulaEstimator(MIEstimator):
     """MI of the Gaussian copula: normal scores of the ranks, then −½ log(1 − ρ²)."""
 
     def estimate(self, x: Tensor, y: Tensor) -> Tensor:
-        zx, zy = (torch.special.ndtri(rank_normalize(t)) for t in (x, y))  # normal scores
-        zx, zy = zx - zx.mean(1, keepdim=True), zy - zy.mean(1, keepdim=True)
-        denominator = (zx.square().sum(1) * zy.square().sum(1)).sqrt().clamp_min(1e-12)
-        rho = (zx * zy).sum(1) / denominator
-        return -0.5 * torch.log1p(-rho.square().clamp(max=1 - 1e-6))
+        return gaussian_copula_mi(rank_normalize(x), rank_normalize(y))
 
 
 class InfoNetEstimator(MIEstimator):

@@ -7,7 +7,8 @@ encoder (latents cross-attend to the pairs, then self-attend) and has two heads:
   bound  Î = mean_i θ(u_i, v_i) − log E_{u,v ~ U(0,1)^2} exp θ(u, v).  Copula marginals are
   exactly uniform, so the product-of-marginals term is the mean of exp θ over the grid: no
   shuffling, no permutation noise. This is the InfoNet design.
-* ``regression``: MI read directly from the pooled latents, trained to Monte-Carlo ground truth.
+* ``regression``: MI read directly from the pooled latents and three statistics of the set (the
+  critic's DV estimate, the Gaussian-copula MI and log N), trained to Monte-Carlo ground truth.
 """
 
 import math
@@ -18,7 +19,11 @@ import torch.nn.functional as F  # noqa: N812
 from huggingface_hub import PyTorchModelHubMixin
 from torch import Tensor, nn
 
+from lerobot_maxmi.mi.normalize import gaussian_copula_mi
+
 HEADS = ("critic", "regression")
+# Log set sizes are centred on the middle of the pretraining range (64 to 1024 pairs).
+LOG_SET_SIZE_CENTRE = math.log(256)
 
 
 @dataclass
@@ -32,6 +37,7 @@ class InfoNetConfig:
     grid_size: int = 32
     critic_rank: int = 16
     num_frequencies: int = 4
+    regression_width: int = 256
 
 
 def fourier_features(points: Tensor, num_frequencies: int) -> Tensor:
@@ -58,6 +64,25 @@ class CrossAttentionBlock(nn.Module):
         return query + self.feed_forward(self.norm_ff(query))
 
 
+class RegressionHead(nn.Module):
+    """MI from the mean latent and (B, 3) set statistics, through an MLP; softplus keeps it non-negative."""
+
+    def __init__(self, dim: int, width: int, num_statistics: int = 3):
+        super().__init__()
+        self.norm = nn.LayerNorm(dim)
+        self.mlp = nn.Sequential(
+            nn.Linear(dim + num_statistics, width),
+            nn.GELU(),
+            nn.Linear(width, width),
+            nn.GELU(),
+            nn.Linear(width, 1),
+        )
+
+    def forward(self, latents: Tensor, statistics: Tensor) -> Tensor:
+        features = torch.cat([self.norm(latents.mean(dim=1)), statistics], dim=-1)
+        return F.softplus(self.mlp(features).squeeze(-1))
+
+
 class InfoNet(nn.Module, PyTorchModelHubMixin, library_name="lerobot_maxmi", tags=["mutual-information"]):
     """Set encoder with a Donsker–Varadhan critic head and a direct MI regression head."""
 
@@ -70,6 +95,7 @@ class InfoNet(nn.Module, PyTorchModelHubMixin, library_name="lerobot_maxmi", tag
         grid_size: int,
         critic_rank: int,
         num_frequencies: int,
+        regression_width: int = 256,
     ):
         super().__init__()
         self.grid_size = grid_size
@@ -95,9 +121,7 @@ class InfoNet(nn.Module, PyTorchModelHubMixin, library_name="lerobot_maxmi", tag
         self.norm_axis = nn.LayerNorm(dim)
         self.norm_latents = nn.LayerNorm(dim)
         self.critic_out = nn.Sequential(nn.LayerNorm(dim), nn.Linear(dim, critic_rank + 1))
-        self.regression_out = nn.Sequential(
-            nn.LayerNorm(dim), nn.Linear(dim, dim), nn.GELU(), nn.Linear(dim, 1)
-        )
+        self.regression_head = RegressionHead(dim, regression_width)
         centres = ((torch.arange(grid_size) + 0.5) / grid_size).unsqueeze(-1)
         self.register_buffer("grid_centres", centres, persistent=False)
 
@@ -139,15 +163,24 @@ class InfoNet(nn.Module, PyTorchModelHubMixin, library_name="lerobot_maxmi", tag
         read = F.scaled_dot_product_attention(query.expand(context.shape[0], -1, -1, -1), key, value)
         return attention.out_proj(read.transpose(1, 2).flatten(-2))
 
-    def regression(self, latents: Tensor) -> Tensor:
-        return F.softplus(self.regression_out(latents.mean(dim=1)).squeeze(-1))
+    def regression(self, latents: Tensor, u: Tensor, v: Tensor, table: Tensor) -> Tensor:
+        """Direct MI estimate from the latents of (u, v) and the critic `table` read from them.
+
+        Attention pooling averages over the pairs, so the latents alone do not tell 100 pairs from
+        1,000 and cannot correct small-sample bias; log N, the critic's DV estimate and the Gaussian-copula
+        MI give the head that context.
+        """
+        log_set_size = torch.full_like(u[:, 0], math.log(u.shape[1]) - LOG_SET_SIZE_CENTRE)
+        statistics = torch.stack([donsker_varadhan(table, u, v), gaussian_copula_mi(u, v), log_set_size], -1)
+        return self.regression_head(latents, statistics)
 
     def forward(self, u: Tensor, v: Tensor, head: str = "critic") -> Tensor:
         """MI estimate in nats, shape (B,), from copula samples u, v of shape (B, N)."""
         latents = self.encode(u, v)
+        table = self.critic_table(latents)
         if head == "regression":
-            return self.regression(latents)
-        return donsker_varadhan(self.critic_table(latents), u, v)
+            return self.regression(latents, u, v, table)
+        return donsker_varadhan(table, u, v)
 
 
 def lookup(table: Tensor, u: Tensor, v: Tensor) -> Tensor:

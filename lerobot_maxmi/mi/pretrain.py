@@ -8,6 +8,9 @@ sees exactly the batches an uninterrupted one would.
 
     lerobot-maxmi-pretrain-mi --output_dir=outputs/infonet --steps=20000
     lerobot-maxmi-pretrain-mi --output_dir=outputs/infonet --steps=30000 --resume=true
+
+`--trainable=regression_head` with `--init_from=<InfoNet directory or repo id>` trains only the
+regression head on top of a frozen encoder and critic (which stay bit-identical).
 """
 
 import json
@@ -19,8 +22,10 @@ from pathlib import Path
 
 import draccus
 import torch
+from huggingface_hub import hf_hub_download
+from huggingface_hub.constants import SAFETENSORS_SINGLE_FILE
 from lerobot.utils.utils import init_logging
-from safetensors.torch import load_model
+from safetensors.torch import load_file, load_model
 from tqdm import tqdm
 
 from lerobot_maxmi.mi.estimators import resolve_device
@@ -31,6 +36,7 @@ from lerobot_maxmi.mi.normalize import hard_rank
 CHECKPOINT_DIR = "checkpoint"
 FINAL_DIR = "final"
 TRAINING_STATE = "training_state.pt"
+TRAINABLE = ("all", "regression_head")
 
 
 @dataclass
@@ -50,11 +56,24 @@ class PretrainMIConfig:
     mc_samples: int = 1024
     max_components: int = 20
     regression_weight: float = 1.0
+    # "all", or "regression_head": only the regression head learns; needs init_from.
+    trainable: str = "all"
+    # An InfoNet (directory or hub repo id) whose encoder and critic start the run; its regression
+    # head is not loaded.
+    init_from: str | None = None
     seed: int = 0
     device: str = "auto"
     save_freq: int = 500
     resume: bool = False
     model: InfoNetConfig = field(default_factory=InfoNetConfig)
+
+    def __post_init__(self):
+        if self.trainable not in TRAINABLE:
+            raise ValueError(f"unknown trainable {self.trainable!r}; choose one of {', '.join(TRAINABLE)}")
+        if self.trainable == "regression_head" and self.init_from is None:
+            raise ValueError(
+                "--trainable=regression_head trains on a frozen encoder: pass --init_from=<InfoNet>"
+            )
 
 
 def draw_batch(cfg: PretrainMIConfig, step: int) -> dict[str, torch.Tensor]:
@@ -76,19 +95,43 @@ def draw_batch(cfg: PretrainMIConfig, step: int) -> dict[str, torch.Tensor]:
 
 
 def training_losses(model: InfoNet, batch: dict[str, torch.Tensor], regression_weight: float) -> dict:
-    latents = model.encode(batch["u"], batch["v"])
+    """−DV on held-out points (the critic) + weight · |regression − MI| (L1: MAE is what we are scored on).
+
+    The regression head reads the critic's estimate but does not train the critic through it.
+    """
+    u, v = batch["u"], batch["v"]
+    latents = model.encode(u, v)
     table = model.critic_table(latents)
     held_out_dv = donsker_varadhan(table, batch["held_u"], batch["held_v"])
-    regression = model.regression(latents)
-    regression_mse = (regression - batch["mi"]).square().mean()
+    regression_error = (model.regression(latents, u, v, table.detach()) - batch["mi"]).abs().mean()
     with torch.no_grad():
-        critic_error = (donsker_varadhan(table, batch["u"], batch["v"]) - batch["mi"]).abs().mean()
+        critic_error = (donsker_varadhan(table, u, v) - batch["mi"]).abs().mean()
     return {
-        "loss": -held_out_dv.mean() + regression_weight * regression_mse,
+        "loss": -held_out_dv.mean() + regression_weight * regression_error,
         "dv": held_out_dv.mean().detach(),
         "critic_mae": critic_error,
-        "regression_mae": (regression - batch["mi"]).abs().mean().detach(),
+        "regression_mae": regression_error.detach(),
     }
+
+
+def load_encoder_and_critic(model: InfoNet, source: str) -> None:
+    """Copy every tensor but the regression head's from a saved InfoNet (local directory or hub repo id)."""
+    local = Path(source) / SAFETENSORS_SINGLE_FILE
+    path = local if local.exists() else hf_hub_download(source, SAFETENSORS_SINGLE_FILE)
+    state = {name: t for name, t in load_file(path).items() if not name.startswith("regression")}
+    expected = {name: t.shape for name, t in model.state_dict().items() if not name.startswith("regression")}
+    if {name: t.shape for name, t in state.items()} != expected:
+        raise ValueError(
+            f"{source} holds an InfoNet of other sizes than --model.*; pass its config.json values"
+        )
+    model.load_state_dict(state, strict=False)
+
+
+def select_trainable(model: InfoNet, trainable: str) -> list[torch.nn.Parameter]:
+    if trainable == "regression_head":
+        model.requires_grad_(False)
+        model.regression_head.requires_grad_(True)
+    return [p for p in model.parameters() if p.requires_grad]
 
 
 def warmup_cosine(warmup_steps: int, total_steps: int):
@@ -121,9 +164,12 @@ def pretrain(cfg: PretrainMIConfig) -> Path:
         )
     resuming = cfg.resume and checkpoint.exists()
     model = InfoNet(**asdict(cfg.model)).to(device)
+    if cfg.init_from:
+        load_encoder_and_critic(model, cfg.init_from)
     if resuming:
-        load_model(model, checkpoint / "model.safetensors", device=str(device))
-    optimizer = torch.optim.AdamW(model.parameters(), lr=cfg.lr, weight_decay=1e-4)
+        load_model(model, checkpoint / SAFETENSORS_SINGLE_FILE, device=str(device))
+    parameters = select_trainable(model, cfg.trainable)
+    optimizer = torch.optim.AdamW(parameters, lr=cfg.lr, weight_decay=1e-4)
     scheduler = torch.optim.lr_scheduler.LambdaLR(optimizer, warmup_cosine(cfg.warmup_steps, cfg.steps))
     start = 0
     if resuming:
@@ -140,7 +186,7 @@ def pretrain(cfg: PretrainMIConfig) -> Path:
         losses = training_losses(model, batch, cfg.regression_weight)
         optimizer.zero_grad(set_to_none=True)
         losses["loss"].backward()
-        torch.nn.utils.clip_grad_norm_(model.parameters(), cfg.grad_clip_norm)
+        torch.nn.utils.clip_grad_norm_(parameters, cfg.grad_clip_norm)
         optimizer.step()
         scheduler.step()
         progress.set_postfix({k: f"{v.item():.3f}" for k, v in losses.items() if k != "loss"})
