@@ -101,3 +101,13 @@ def test_init_from_an_infonet_of_other_sizes_is_rejected(tmp_path):
     cfg.init_from, cfg.model.dim = str(base), 8
     with pytest.raises(ValueError, match="other sizes"):
         pretrain(cfg)
+
+
+def test_init_from_a_repo_id_goes_through_the_hub_client(tmp_path):
+    """Offline here, so it stops at the network boundary."""
+    from huggingface_hub.errors import HfHubHTTPError, LocalEntryNotFoundError, OfflineModeIsEnabled
+
+    cfg = tiny_config(tmp_path, steps=1)
+    cfg.init_from = "lerobot-maxmi-tests/no-such-infonet"
+    with pytest.raises((OfflineModeIsEnabled, LocalEntryNotFoundError, HfHubHTTPError)):
+        pretrain(cfg)

@@ -95,7 +95,7 @@ class InfoNet(nn.Module, PyTorchModelHubMixin, library_name="lerobot_maxmi", tag
         grid_size: int,
         critic_rank: int,
         num_frequencies: int,
-        regression_width: int = 256,
+        regression_width: int,
     ):
         super().__init__()
         self.grid_size = grid_size
