@@ -150,3 +150,19 @@ def test_hub_repo_id_goes_through_the_hub_client():
 
     with pytest.raises((OfflineModeIsEnabled, LocalEntryNotFoundError, HfHubHTTPError)):
         load_estimator("infonet", pretrained="lerobot-maxmi-tests/no-such-infonet")
+
+
+def test_attention_rewrites_match_torch_modules(generator):
+    """InfoNet runs its attention layers through `attend` / `pre_norm_layer` for speed; same results."""
+    from lerobot_maxmi.mi.infonet import attend, pre_norm_layer
+
+    attention = torch.nn.MultiheadAttention(16, 4, batch_first=True)
+    queries, context = torch.randn(5, 16, generator=generator), torch.randn(3, 7, 16, generator=generator)
+    batched = queries.expand(3, -1, -1)
+    expected = attention(batched, context, context, need_weights=False)[0]
+    torch.testing.assert_close(attend(attention, batched, context), expected)
+    torch.testing.assert_close(attend(attention, queries, context), expected)
+    layer = torch.nn.TransformerEncoderLayer(
+        16, 4, 64, dropout=0.0, activation="gelu", batch_first=True, norm_first=True
+    )
+    torch.testing.assert_close(pre_norm_layer(layer, context), layer(context))

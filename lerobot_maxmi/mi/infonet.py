@@ -47,6 +47,33 @@ def fourier_features(points: Tensor, num_frequencies: int) -> Tensor:
     return torch.cat([points, angles.sin(), angles.cos()], dim=-1)
 
 
+def attend(attention: nn.MultiheadAttention, query: Tensor, context: Tensor) -> Tensor:
+    """`attention` of batch-first queries to a (B, N, dim) context, computed from the module's own weights.
+
+    nn.MultiheadAttention turns batch-first inputs sequence-first and back, and projects a shared
+    key/value input with one small matrix product per position. Projecting the batch-first tensors
+    directly is the same computation in large contiguous products. Queries of shape (Q, dim) are
+    shared by every set and projected once.
+    """
+    dim = query.shape[-1]
+    weights, biases = attention.in_proj_weight.split(dim), attention.in_proj_bias.split(dim)
+
+    def heads(projected: Tensor) -> Tensor:  # (..., L, dim) -> (..., heads, L, dim / heads)
+        return projected.unflatten(-1, (attention.num_heads, -1)).transpose(-3, -2)
+
+    query = heads(F.linear(query, weights[0], biases[0]))
+    key, value = (heads(F.linear(context, w, b)) for w, b in zip(weights[1:], biases[1:], strict=True))
+    read = F.scaled_dot_product_attention(query.expand(context.shape[0], -1, -1, -1), key, value)
+    return attention.out_proj(read.transpose(-3, -2).flatten(-2))
+
+
+def pre_norm_layer(layer: nn.TransformerEncoderLayer, x: Tensor) -> Tensor:
+    """`layer` (norm_first, no dropout) applied to batch-first x, with its self-attention through `attend`."""
+    normed = layer.norm1(x)
+    x = x + attend(layer.self_attn, normed, normed)
+    return x + layer.linear2(layer.activation(layer.linear1(layer.norm2(x))))
+
+
 class CrossAttentionBlock(nn.Module):
     """Queries attend to a context set, then a feed-forward layer; pre-norm residuals."""
 
@@ -59,8 +86,8 @@ class CrossAttentionBlock(nn.Module):
         self.feed_forward = nn.Sequential(nn.Linear(dim, 4 * dim), nn.GELU(), nn.Linear(4 * dim, dim))
 
     def forward(self, query: Tensor, context: Tensor) -> Tensor:
-        context = self.norm_context(context)
-        query = query + self.attention(self.norm_query(query), context, context, need_weights=False)[0]
+        """(Q, dim) queries shared by every set, or (B, Q, dim), attend to the (B, N, dim) context."""
+        query = query + attend(self.attention, self.norm_query(query), self.norm_context(context))
         return query + self.feed_forward(self.norm_ff(query))
 
 
@@ -111,6 +138,7 @@ class InfoNet(nn.Module, PyTorchModelHubMixin, library_name="lerobot_maxmi", tag
         layer = nn.TransformerEncoderLayer(
             dim, num_heads, 4 * dim, dropout=0.0, activation="gelu", batch_first=True, norm_first=True
         )
+        # Holds the self-attention layers and their weights' names; `encode` runs them via `pre_norm_layer`.
         self.process = nn.TransformerEncoder(layer, num_layers, enable_nested_tensor=False)
         # One query per grid row (a value of v) and per column (a value of u): 2G queries, not G².
         self.embed_axis = nn.Sequential(
@@ -128,8 +156,10 @@ class InfoNet(nn.Module, PyTorchModelHubMixin, library_name="lerobot_maxmi", tag
     def encode(self, u: Tensor, v: Tensor) -> Tensor:
         """(B, N) copula samples -> (B, num_latents, dim) set summary."""
         pairs = self.embed_pairs(fourier_features(torch.stack([u, v], dim=-1), self.num_frequencies))
-        latents = self.latents.expand(u.shape[0], -1, -1)
-        return self.process(self.read_pairs(latents, pairs))
+        latents = self.read_pairs(self.latents, pairs)
+        for layer in self.process.layers:
+            latents = pre_norm_layer(layer, latents)
+        return latents
 
     def critic_table(self, latents: Tensor) -> Tensor:
         """(B, G, G) critic at the grid cell centres (rows index v, columns u).
@@ -140,28 +170,11 @@ class InfoNet(nn.Module, PyTorchModelHubMixin, library_name="lerobot_maxmi", tag
         """
         axis = self.embed_axis(fourier_features(self.grid_centres.to(latents.dtype), self.num_frequencies))
         queries = torch.cat([axis + self.axis_id[0], axis + self.axis_id[1]])  # (2G, dim): one set for all
-        features = queries + self._read_latents(queries, self.norm_latents(latents))
+        features = queries + attend(self.read_latents, self.norm_axis(queries), self.norm_latents(latents))
         features = self.critic_out(features)  # (B, 2G, R + 1)
         columns, rows = features.split(self.grid_size, dim=1)  # columns: u axis, rows: v axis
         table = rows[..., :-1] @ columns[..., :-1].transpose(1, 2) / math.sqrt(rows.shape[-1] - 1)
         return table + rows[..., -1:] + columns[..., -1].unsqueeze(1)
-
-    def _read_latents(self, queries: Tensor, context: Tensor) -> Tensor:
-        """`read_latents` attention of the (Q, dim) queries to each set's (B, L, dim) context -> (B, Q, dim).
-
-        The queries are the same for every set, so they are normalized and projected once, not B times
-        as nn.MultiheadAttention would: the same result, and the critic table costs about a third less.
-        """
-        attention, dim = self.read_latents, queries.shape[-1]
-        weights, biases = attention.in_proj_weight.split(dim), attention.in_proj_bias.split(dim)
-
-        def heads(projected: Tensor) -> Tensor:  # (..., N, dim) -> (..., heads, N, dim / heads)
-            return projected.unflatten(-1, (attention.num_heads, -1)).transpose(-3, -2)
-
-        query = heads(F.linear(self.norm_axis(queries), weights[0], biases[0]))
-        key, value = (heads(F.linear(context, w, b)) for w, b in zip(weights[1:], biases[1:], strict=True))
-        read = F.scaled_dot_product_attention(query.expand(context.shape[0], -1, -1, -1), key, value)
-        return attention.out_proj(read.transpose(1, 2).flatten(-2))
 
     def regression(self, latents: Tensor, u: Tensor, v: Tensor, table: Tensor) -> Tensor:
         """Direct MI estimate from the latents of (u, v) and the critic `table` read from them.
