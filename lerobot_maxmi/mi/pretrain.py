@@ -118,6 +118,7 @@ def load_encoder_and_critic(model: InfoNet, source: str) -> None:
     """Copy every tensor but the regression head's from a saved InfoNet (local directory or hub repo id)."""
     local = Path(source) / SAFETENSORS_SINGLE_FILE
     path = local if local.exists() else hf_hub_download(source, SAFETENSORS_SINGLE_FILE)
+    # "regression" also skips the head of files saved before it was rebuilt (`regression_out.*`).
     state = {name: t for name, t in load_file(path).items() if not name.startswith("regression")}
     expected = {name: t.shape for name, t in model.state_dict().items() if not name.startswith("regression")}
     if {name: t.shape for name, t in state.items()} != expected:
@@ -164,10 +165,10 @@ def pretrain(cfg: PretrainMIConfig) -> Path:
         )
     resuming = cfg.resume and checkpoint.exists()
     model = InfoNet(**asdict(cfg.model)).to(device)
-    if cfg.init_from:
-        load_encoder_and_critic(model, cfg.init_from)
     if resuming:
         load_model(model, checkpoint / SAFETENSORS_SINGLE_FILE, device=str(device))
+    elif cfg.init_from:
+        load_encoder_and_critic(model, cfg.init_from)
     parameters = select_trainable(model, cfg.trainable)
     optimizer = torch.optim.AdamW(parameters, lr=cfg.lr, weight_decay=1e-4)
     scheduler = torch.optim.lr_scheduler.LambdaLR(optimizer, warmup_cosine(cfg.warmup_steps, cfg.steps))
