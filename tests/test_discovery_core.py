@@ -2,7 +2,7 @@
 
 import torch
 
-from lerobot_maxmi.discovery.ksl_net import KSLNet, resample, soft_argmax, to_episode_frame
+from lerobot_maxmi.discovery.ksl_net import KSLNet, MaxOverTimeLinear, resample, soft_argmax, to_episode_frame
 from lerobot_maxmi.discovery.losses import (
     diversity_loss,
     interpolate_states,
@@ -33,6 +33,20 @@ def test_ksl_net_uses_position_and_concept():
     net = KSLNet(state_dim=2, length=8, num_concepts=2, embed_dim=4, encoder_dims=(16,), head_dims=(16,))
     logits = net(torch.zeros(1, 8, 2))  # identical states: only the embeddings can differ
     assert not torch.allclose(logits[0, 0], logits[0, 1])
+
+
+def test_max_over_time_linear_matches_the_dense_gradient():
+    torch.manual_seed(0)
+    x = torch.randn(3, 2, 7, 5, dtype=torch.float64, requires_grad=True)
+    weight = torch.randn(4, 5, dtype=torch.float64, requires_grad=True)
+    bias = torch.randn(4, dtype=torch.float64, requires_grad=True)
+    assert torch.autograd.gradcheck(MaxOverTimeLinear.apply, (x, weight, bias))
+    dense = torch.nn.functional.linear(x, weight, bias).max(dim=2).values
+    grad = torch.randn_like(dense)
+    expected = torch.autograd.grad(dense, (x, weight, bias), grad)
+    actual = torch.autograd.grad(MaxOverTimeLinear.apply(x, weight, bias), (x, weight, bias), grad)
+    for a, e in zip(actual, expected, strict=True):
+        torch.testing.assert_close(a, e)
 
 
 def test_soft_argmax_of_a_sharp_peak_is_its_index():

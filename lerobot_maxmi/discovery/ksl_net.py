@@ -7,6 +7,8 @@ the trajectory, and an MLP gives T logits: where concept k sits in this trajecto
 positional embedding is what lets a max-pooled, pointwise encoder know *when* a state occurs.
 """
 
+import warnings
+
 import torch
 import torch.nn.functional as F  # noqa: N812
 from huggingface_hub import PyTorchModelHubMixin
@@ -34,6 +36,40 @@ def soft_argmax(logits: Tensor) -> Tensor:
     """(B, K, T) logits -> (B, K) expected indices t̂ = Σ_t t · p_t."""
     steps = torch.arange(logits.shape[-1], device=logits.device, dtype=logits.dtype)
     return logits.softmax(dim=-1) @ steps
+
+
+class MaxOverTimeLinear(torch.autograd.Function):
+    """max over time of a linear layer, (B, K, T, C_in) -> (B, K, C_out), with a sparse backward.
+
+    Only each output channel's arg-max step receives gradient, so both gradient products run on a
+    sparse matrix with one entry per (trajectory, concept, channel): 1/T of the dense products' work.
+    """
+
+    @staticmethod
+    def forward(ctx, x: Tensor, weight: Tensor, bias: Tensor) -> Tensor:
+        values, steps = F.linear(x, weight, bias).max(dim=2)
+        ctx.save_for_backward(x, weight, steps)
+        return values
+
+    @staticmethod
+    def backward(ctx, grad: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+        x, weight, steps = ctx.saved_tensors
+        rows, length = steps.shape[0] * steps.shape[1], x.shape[2]
+        grad, steps = grad.reshape(rows, -1), steps.reshape(rows, -1)
+        # Row c of the (C_out, rows * T) gradient w.r.t. the pre-pooling output holds one entry per row.
+        columns = steps + torch.arange(rows, device=x.device).unsqueeze(1) * length
+        with warnings.catch_warnings():
+            warnings.filterwarnings("ignore", "Sparse (CSR tensor support|invariant checks)")
+            by_channel = torch.sparse_csr_tensor(
+                torch.arange(0, grad.numel() + 1, rows, device=x.device),
+                columns.T.reshape(-1),
+                grad.T.reshape(-1),
+                (grad.shape[1], rows * length),
+                check_invariants=False,  # valid by construction
+            )
+        grad_x = (by_channel.t() @ weight).view_as(x)
+        grad_weight = by_channel @ x.reshape(rows * length, -1)
+        return grad_x, grad_weight, grad.sum(dim=0)
 
 
 def mlp(sizes: list[int]) -> nn.Sequential:
@@ -78,8 +114,13 @@ class KSLNet(nn.Module, PyTorchModelHubMixin, library_name="lerobot_maxmi", tags
             raise ValueError(
                 f"KSL-Net was built for trajectories resampled to {self.length} steps, got {length}"
             )
-        features = self.encoder[1:](self._first_layer(states))  # (B, K, T, C)
-        return self.head(F.relu(features.max(dim=2).values))  # (B, K, T)
+        features = self._first_layer(states)  # (B, K, T, C)
+        if len(self.encoder) == 1:
+            pooled = features.max(dim=2).values
+        else:
+            last = self.encoder[-1]
+            pooled = MaxOverTimeLinear.apply(self.encoder[1:-1](features), last.weight, last.bias)
+        return self.head(F.relu(pooled))  # (B, K, T)
 
     def _first_layer(self, states: Tensor) -> Tensor:
         """The encoder's first layer on [standardized s_t ; position(t) ; concept(k)] for every (k, t).
