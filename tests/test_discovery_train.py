@@ -1,8 +1,11 @@
 """Training KSL-Net and localizing key frames: determinism and input checks (tiny configs)."""
 
+import resource
+
 import pytest
 import torch
 
+from lerobot_maxmi.cpu_memory import reuse_freed_memory
 from lerobot_maxmi.discovery.train import DiscoveryConfig, KSLNetArchitecture, fit_localizer, train_localizer
 
 
@@ -96,3 +99,15 @@ def test_maxmi_finds_planted_pauses():
     )  # (episodes, pauses): distance to the nearest discovered key frame, as a fraction of length
     assert errors.median() <= 0.03, f"median error {errors.median():.3f} of the episode length"
     assert (errors <= 0.05).float().mean() >= 0.85, f"within 5%: {(errors <= 0.05).float().mean(0).tolist()}"
+
+
+def test_freed_tensor_memory_is_reused_on_cpu():
+    assert reuse_freed_memory()
+    size = 64 << 20  # above glibc's largest default mmap threshold (32 MB)
+    for _ in range(3):  # the heap grows to hold it
+        torch.ones(size, dtype=torch.uint8)
+    faults_before = resource.getrusage(resource.RUSAGE_SELF).ru_minflt
+    for _ in range(5):
+        torch.ones(size, dtype=torch.uint8)
+    # Unmapped on free, each tensor would page-fault in afresh: 16k faults of 4 KiB pages apiece.
+    assert resource.getrusage(resource.RUSAGE_SELF).ru_minflt - faults_before < 1000

@@ -8,6 +8,7 @@ from accelerate import Accelerator
 from torch import Tensor
 from tqdm import tqdm
 
+from lerobot_maxmi.cpu_memory import reuse_freed_memory
 from lerobot_maxmi.discovery.ksl_net import KSLNet, soft_argmax, stack_resampled
 from lerobot_maxmi.discovery.losses import diversity_loss, maxmi_loss, ordering_loss, released_maxmi_loss
 from lerobot_maxmi.discovery.nms import shared_concepts
@@ -119,6 +120,8 @@ def train_localizer(episodes: list[Tensor], cfg: DiscoveryConfig) -> KSLNet:
     accelerator = make_accelerator()
     # Launched processes use the device the launcher gives each of them.
     device = resolve_device(cfg.device) if accelerator.num_processes == 1 else accelerator.device
+    if device.type == "cpu":
+        reuse_freed_memory()
     length = cfg.resample_length or min(DEFAULT_MAX_RESAMPLE_LENGTH, *(len(states) for states in episodes))
     data = stack_resampled(episodes, length).to(device)
     net = KSLNet(data.shape[-1], length, cfg.num_concepts, **asdict(cfg.model)).to(device)
