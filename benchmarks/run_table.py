@@ -8,10 +8,12 @@ A cell is (task, variant, seed) under a profile: demos -> lerobot-maxmi-discover
 lerobot-eval on seen initial configurations (the demos' own seeds) and unseen ones (seeds from
 1,000,000 on). Every finished cell is stored in `<output_dir>/results.json` under its full
 configuration; a cell already there is skipped, so an interrupted run continues where it stopped.
+Runners for different tasks may share an output directory and run at the same time.
 A cell whose command fails is not stored. The tables (`<output_dir>/tables.md`) are regenerated
 from the JSON after every cell, and on their own with `--run=false`.
 """
 
+import fcntl
 import json
 import os
 import platform
@@ -177,6 +179,19 @@ def load_results(path: Path) -> dict:
     return json.loads(path.read_text()) if path.exists() else {}
 
 
+def store_cell(results_path: Path, key: str, cell: dict) -> dict:
+    """Merge one finished cell into results.json under a lock; returns all results stored so far.
+
+    Runners that share an output directory (different tasks in parallel) keep each other's cells.
+    """
+    results_path.parent.mkdir(parents=True, exist_ok=True)
+    with open(results_path.with_suffix(".lock"), "w") as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)
+        results = {**load_results(results_path), key: cell}
+        save_text(results_path, json.dumps(results, indent=1))
+    return results
+
+
 def save_text(path: Path, text: str) -> None:
     """Write atomically, so an interrupted run never leaves a truncated file."""
     path.parent.mkdir(parents=True, exist_ok=True)
@@ -245,8 +260,7 @@ def run_table(cfg: TableConfig) -> str:
         if cell_key(config) in results:
             print(f"done already: {config['task']} {config['variant']} seed {config['seed']}")
             continue
-        results[cell_key(config)] = run_cell(config, profile, cfg.output_dir)
-        save_text(results_path, json.dumps(results, indent=1))
+        results = store_cell(results_path, cell_key(config), run_cell(config, profile, cfg.output_dir))
         save_text(tables_path, markdown_tables(results) + "\n")
     tables = markdown_tables(results)
     save_text(tables_path, tables + "\n")

@@ -78,6 +78,23 @@ def test_cells_run_the_pipeline_per_variant_and_are_not_rerun(monkeypatch, tmp_p
     assert "lerobot-train" not in tools.tools()  # every cell is done already
 
 
+def test_cells_stored_by_a_parallel_runner_are_kept(monkeypatch, tmp_path):
+    tools = FakeTools()
+    config = run_table.cell_config("StackCube-v1", "none", 0, run_table.PROFILES["cpu"])
+    foreign = {"config": config, "seen": {"success": 1.0}, "unseen": {"success": 2.0}, "wall_s": {}}
+
+    def another_runner_stores_a_cell(name, *args):
+        if name == "lerobot-train":
+            (tmp_path / "results.json").write_text(json.dumps({run_table.cell_key(config): foreign}))
+        tools(name, *args)
+
+    monkeypatch.setattr(pipeline, "run_tool", another_runner_stores_a_cell)
+    run_table.run_table(run_table.TableConfig(variants=["none"], output_dir=tmp_path))
+    results = json.loads((tmp_path / "results.json").read_text())
+    assert results[run_table.cell_key(config)] == foreign and len(results) == 2
+    assert "### StackCube-v1" in (tmp_path / "tables.md").read_text()
+
+
 def test_a_failed_cell_is_not_recorded(monkeypatch, tmp_path):
     monkeypatch.setattr(pipeline, "run_tool", FakeTools(failing="lerobot-train"))
     with pytest.raises(subprocess.CalledProcessError):
