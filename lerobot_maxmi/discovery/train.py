@@ -120,8 +120,7 @@ def train_localizer(episodes: list[Tensor], cfg: DiscoveryConfig) -> KSLNet:
     accelerator = make_accelerator()
     # Launched processes use the device the launcher gives each of them.
     device = resolve_device(cfg.device) if accelerator.num_processes == 1 else accelerator.device
-    if device.type == "cpu":
-        reuse_freed_memory()
+    reuse_freed_memory(device)
     length = cfg.resample_length or min(DEFAULT_MAX_RESAMPLE_LENGTH, *(len(states) for states in episodes))
     data = stack_resampled(episodes, length).to(device)
     net = KSLNet(data.shape[-1], length, cfg.num_concepts, **asdict(cfg.model)).to(device)

@@ -28,6 +28,7 @@ from lerobot.utils.utils import init_logging
 from safetensors.torch import load_file, load_model
 from tqdm import tqdm
 
+from lerobot_maxmi.cpu_memory import reuse_freed_memory
 from lerobot_maxmi.mi.estimators import resolve_device
 from lerobot_maxmi.mi.ground_truth import random_gaussian_mixtures
 from lerobot_maxmi.mi.infonet import InfoNet, InfoNetConfig, donsker_varadhan
@@ -158,6 +159,7 @@ def pretrain(cfg: PretrainMIConfig) -> Path:
     """Train (or resume) and return the directory holding the final weights."""
     torch.manual_seed(cfg.seed)
     device = resolve_device(cfg.device)
+    reuse_freed_memory(device)
     checkpoint = cfg.output_dir / CHECKPOINT_DIR
     if checkpoint.exists() and not cfg.resume:
         raise FileExistsError(
