@@ -72,6 +72,17 @@ class MaxOverTimeLinear(torch.autograd.Function):
         return grad_x, grad_weight, grad.sum(dim=0)
 
 
+def max_over_time(x: Tensor, layer: nn.Linear) -> Tensor:
+    """max over time of `layer` on (B, K, T, C_in) inputs -> (B, K, C_out).
+
+    The sparse backward is what pays on the CPU; on an accelerator the dense products are fast, and
+    its sparse kernels are not what we test on.
+    """
+    if x.device.type == "cpu":
+        return MaxOverTimeLinear.apply(x, layer.weight, layer.bias)
+    return layer(x).max(dim=2).values
+
+
 def mlp(sizes: list[int]) -> nn.Sequential:
     layers: list[nn.Module] = []
     for i, (a, b) in enumerate(zip(sizes[:-1], sizes[1:], strict=True)):
@@ -118,8 +129,7 @@ class KSLNet(nn.Module, PyTorchModelHubMixin, library_name="lerobot_maxmi", tags
         if len(self.encoder) == 1:
             pooled = features.max(dim=2).values
         else:
-            last = self.encoder[-1]
-            pooled = MaxOverTimeLinear.apply(self.encoder[1:-1](features), last.weight, last.bias)
+            pooled = max_over_time(self.encoder[1:-1](features), self.encoder[-1])
         return self.head(F.relu(pooled))  # (B, K, T)
 
     def _first_layer(self, states: Tensor) -> Tensor:
