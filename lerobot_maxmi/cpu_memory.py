@@ -2,8 +2,9 @@
 
 glibc serves every allocation above its mmap threshold (which it adapts, but never past 32 MB)
 with fresh pages from the kernel and unmaps them when freed. A training step whose activations are
-larger page-faults them in again on every step: a third of a KSL-Net step's CPU time at the default
-sizes. Raising the threshold keeps those blocks on the heap, where the next step reuses them.
+larger page-faults them in again on every step: about 30% of a discovery step's CPU time at the
+default sizes (measured on one thread, see docs/RESULTS.md). Raising the threshold keeps those
+blocks on the heap, where the next step reuses them.
 """
 
 import ctypes
