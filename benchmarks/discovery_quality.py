@@ -7,7 +7,8 @@ The dataset needs per-episode `gt/key_frames` (the ManiSkill demo generator writ
 episode, discovered and ground-truth key frames are matched one-to-one (Hungarian on |Δt|); the
 final frame is left out on both sides (see `lerobot_maxmi.discovery.quality`). Columns: mean
 |Δt| of matched ground-truth key frames as % of the episode length, the share of ground-truth key
-frames matched within the tolerance, and unmatched discovered frames per episode.
+frames matched within the tolerance, unmatched discovered frames per episode, and the mean error of
+each sub-goal in `gt/key_frames` order (e.g. PickCube: grasp; StackCube: grasp / A on B).
 """
 
 from dataclasses import dataclass, field

@@ -67,8 +67,8 @@ def test_shared_concepts_merge_duplicates_dataset_wide():
 
 
 def test_matching_is_one_to_one_and_minimizes_total_offset():
-    assert sorted(match([10, 12], [11, 30])) == [(10, 11), (12, 30)]  # total 19, not 21
-    assert match([5, 50, 95], [48]) == [(50, 48)]
+    assert sorted(match([10, 12], [11, 30])) == [(10, 0), (12, 1)]  # total 19, not 21
+    assert match([5, 50, 95], [48]) == [(50, 0)]
     assert match([], [5]) == []
 
 
@@ -76,15 +76,26 @@ def test_episode_quality_excludes_the_final_frame_and_counts_extras():
     # GT: sub-goals at 20 and 60, final 99. Found: 22 (2% off), 80 (20% off), 40 (extra), 99 (final).
     quality = episode_quality([22, 40, 80, 99], [20, 60, 99], length=100)
     assert sorted(quality.errors) == pytest.approx([0.02, 0.2])
+    assert dict(zip(quality.subgoals, quality.errors, strict=True)) == pytest.approx({0: 0.02, 1: 0.2})
     assert (quality.num_truth, quality.num_found_within, quality.num_extra) == (2, 1, 1)
 
 
 def test_dataset_quality_reports_percentages():
     summary = dataset_quality([[22, 99], [99]], [[20, 99], [50, 99]], [100, 100])
     assert summary["mean_error_pct"] == pytest.approx(2.0)
+    assert summary["mean_error_pct_by_subgoal"] == pytest.approx([2.0])
     assert summary["found_within"] == pytest.approx(0.5)  # episode 2's sub-goal was not found
     assert summary["extra_per_episode"] == 0
     assert math.isnan(dataset_quality([[9]], [[9]], [10])["mean_error_pct"])  # nothing to match
+
+
+def test_dataset_quality_breaks_the_error_down_by_subgoal():
+    # Sub-goal 0 found 1% and 3% off, sub-goal 1 10% off, sub-goal 2 never matched.
+    summary = dataset_quality([[21, 50, 99], [47, 70]], [[20, 60, 80, 99], [50, 99]], [100, 100])
+    by_subgoal = summary["mean_error_pct_by_subgoal"]
+    assert by_subgoal[:2] == pytest.approx([2.0, 10.0])
+    assert math.isnan(by_subgoal[2])
+    assert summary["mean_error_pct"] == pytest.approx(14 / 3)
 
 
 def test_selectors_side_by_side_against_ground_truth(tmp_path):
@@ -100,6 +111,7 @@ def test_selectors_side_by_side_against_ground_truth(tmp_path):
     )
     assert results["ground_truth"] == {
         "mean_error_pct": 0.0,
+        "mean_error_pct_by_subgoal": [0.0],
         "found_within": 1.0,
         "extra_per_episode": 0.0,
         "key_frames_per_episode": 2.0,
@@ -109,4 +121,4 @@ def test_selectors_side_by_side_against_ground_truth(tmp_path):
     )
     assert results["uniform"]["found_within"] == 1.0  # one interior frame at the middle
     table = markdown_table(results)
-    assert table.splitlines()[2].startswith("| ground_truth | 2.0 | 0.0 | 100% | 0.0 |")
+    assert table.splitlines()[2].startswith("| ground_truth | 2.0 | 0.0 | 100% | 0.0 | 0.0 |")

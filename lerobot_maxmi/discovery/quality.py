@@ -23,17 +23,18 @@ TOLERANCE = 0.05  # "found" = matched within 5% of the episode length
 
 
 def match(found: Sequence[int], truth: Sequence[int]) -> list[tuple[int, int]]:
-    """One-to-one (found, truth) frame pairs minimizing the total |Δt|; min(len) pairs."""
+    """One-to-one (found, truth index) pairs minimizing the total |Δt|; min(len) pairs."""
     if not found or not truth:
         return []
     cost = np.abs(np.subtract.outer(np.asarray(found), np.asarray(truth)))
     rows, columns = linear_sum_assignment(cost)
-    return [(found[r], truth[c]) for r, c in zip(rows, columns, strict=True)]
+    return [(found[r], int(c)) for r, c in zip(rows, columns, strict=True)]
 
 
 @dataclass
 class Quality:
     errors: list[float]  # |Δt| / episode length of every matched ground-truth key frame
+    subgoals: list[int]  # which sub-goal (position in gt/key_frames) each error belongs to
     num_truth: int  # ground-truth sub-goal key frames
     num_found_within: int  # ground-truth key frames matched within the tolerance
     num_extra: int  # discovered key frames left unmatched
@@ -41,6 +42,7 @@ class Quality:
     def __add__(self, other: "Quality") -> "Quality":
         return Quality(
             self.errors + other.errors,
+            self.subgoals + other.subgoals,
             self.num_truth + other.num_truth,
             self.num_found_within + other.num_found_within,
             self.num_extra + other.num_extra,
@@ -54,9 +56,19 @@ def episode_quality(
     final = length - 1
     found = [f for f in found if f != final]
     truth = list(truth[:-1])
-    errors = [abs(f - t) / length for f, t in match(found, truth)]
+    pairs = match(found, truth)
+    errors = [abs(f - truth[subgoal]) / length for f, subgoal in pairs]
     within = sum(error <= tolerance for error in errors)
-    return Quality(errors, len(truth), within, len(found) - len(errors))
+    return Quality(errors, [subgoal for _, subgoal in pairs], len(truth), within, len(found) - len(errors))
+
+
+def subgoal_means(total: Quality, num_subgoals: int) -> list[float]:
+    """Mean matched error (% of length) of each sub-goal, in gt/key_frames order."""
+    subgoals = np.asarray(total.subgoals, dtype=int)
+    counts = np.bincount(subgoals, minlength=num_subgoals)  # never matched: no mean (NaN, shown as "–")
+    sums = np.bincount(subgoals, weights=np.asarray(total.errors), minlength=num_subgoals)
+    with np.errstate(invalid="ignore"):
+        return (100 * sums / counts).tolist()
 
 
 def dataset_quality(
@@ -64,16 +76,17 @@ def dataset_quality(
     truth: Sequence[Sequence[int]],
     lengths: Sequence[int],
     tolerance: float = TOLERANCE,
-) -> dict[str, float]:
-    """Key frames per episode, mean matched error (% of length), share of GT key states found within
-    tolerance, extras per episode."""
+) -> dict[str, float | list[float]]:
+    """Key frames per episode, mean matched error (% of length) overall and per sub-goal, share of
+    GT key states found within tolerance, extras per episode."""
     total = sum(
         (episode_quality(f, t, n, tolerance) for f, t, n in zip(found, truth, lengths, strict=True)),
-        Quality([], 0, 0, 0),
+        Quality([], [], 0, 0, 0),
     )
     return {
         "key_frames_per_episode": float(np.mean([len(f) for f in found])),
         "mean_error_pct": 100 * float(np.mean(total.errors)) if total.errors else float("nan"),
+        "mean_error_pct_by_subgoal": subgoal_means(total, max(len(t) for t in truth) - 1),
         "found_within": total.num_found_within / total.num_truth if total.num_truth else float("nan"),
         "extra_per_episode": total.num_extra / len(lengths),
     }
@@ -106,11 +119,12 @@ def _pct(value: float) -> str:
 def markdown_table(results: dict[str, dict[str, float]], tolerance: float = TOLERANCE) -> str:
     header = (
         f"| selector | key frames / episode | mean error (% of length) | GT found within {tolerance:.0%} "
-        "| extra / episode |\n|---|---|---|---|---|"
+        "| extra / episode | error by sub-goal (%) |\n|---|---|---|---|---|---|"
     )
     rows = [
         f"| {name} | {r['key_frames_per_episode']:.1f} | {_pct(r['mean_error_pct'])} "
-        f"| {r['found_within']:.0%} | {r['extra_per_episode']:.1f} |"
+        f"| {r['found_within']:.0%} | {r['extra_per_episode']:.1f} "
+        f"| {' / '.join(map(_pct, r['mean_error_pct_by_subgoal'])) or '–'} |"
         for name, r in results.items()
     ]
     return "\n".join([header, *rows])
