@@ -116,7 +116,7 @@ def _pct(value: float) -> str:
     return "–" if np.isnan(value) else f"{value:.1f}"  # NaN: the selector proposed no frame to score
 
 
-def markdown_table(results: dict[str, dict[str, float]], tolerance: float = TOLERANCE) -> str:
+def markdown_table(results: dict[str, dict[str, float | list[float]]], tolerance: float = TOLERANCE) -> str:
     header = (
         f"| selector | key frames / episode | mean error (% of length) | GT found within {tolerance:.0%} "
         "| extra / episode | error by sub-goal (%) |\n|---|---|---|---|---|---|"
