@@ -1,14 +1,16 @@
 """The MaxMI paper's Fig. 2: does MI(s_{t_k+σ}; s_{t_k+σ−Δt}) across demonstrations peak at key states?
 
     .venv/bin/python benchmarks/mi_peak.py --dataset.repo_id=local/pick --dataset.root=data/pick \
-        --output_dir=outputs/mi_peak [--estimator=ksg] [--delta_t=2] [--max_shift=20]
+        --output=outputs/mi_peak/pick.png [--estimator=ksg] [--delta_t=2] [--max_shift=20]
 
-For each ground-truth key state k (per-episode `gt/key_frames`, named by `gt/key_frame_names` when
-present) and each shift σ in [−max_shift, max_shift], the pairs (s_{t_k+σ}, s_{t_k+σ−Δt}) of all
-episodes where both frames exist form one sample set; its MI comes from
-`lerobot_maxmi.mi.state_mi` with the chosen estimator. One PNG per key state in `output_dir`.
+For each ground-truth sub-goal k (per-episode `gt/key_frames` without the final frame, named by
+`gt/key_frame_names` when present) and each shift σ in [−max_shift, max_shift], the pairs
+(s_{t_k+σ}, s_{t_k+σ−Δt}) of all episodes where both frames exist form one sample set; its MI comes
+from `lerobot_maxmi.mi.state_mi` with the chosen estimator. One PNG per dataset, one curve per
+sub-goal, and a line per sub-goal on stdout: MI at σ = 0, the maximum and its shift.
 """
 
+import math
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -30,7 +32,7 @@ from lerobot_maxmi.mi import MIEstimator, load_estimator, state_mi  # noqa: E402
 @dataclass
 class MIPeakConfig:
     dataset: DatasetLocation
-    output_dir: Path = Path("outputs/mi_peak")
+    output: Path = Path("outputs/mi_peak/mi_peak.png")
     state_key: str = "observation.state"
     estimator: str = "ksg"
     state_mi_mode: str = "per_dim"
@@ -39,28 +41,44 @@ class MIPeakConfig:
     min_episodes: int = 8  # fewer pairs than this at a shift gives no estimate
 
 
-def mi_at_shift(
-    episodes: list[Tensor], anchors: list[int], shift: int, cfg: MIPeakConfig, estimator: MIEstimator
-) -> float:
-    pairs = [
-        (states[t + shift], states[t + shift - cfg.delta_t])
-        for states, t in zip(episodes, anchors, strict=True)
-        if t + shift - cfg.delta_t >= 0 and t + shift < len(states)
-    ]
-    if len(pairs) < cfg.min_episodes:
-        return float("nan")
-    now, before = (torch.stack(side)[None] for side in zip(*pairs, strict=True))
-    return state_mi(now, before, estimator, cfg.state_mi_mode).item()
+def mi_curve(
+    episodes: list[Tensor], anchors: list[int], shifts: list[int], cfg: MIPeakConfig, estimator: MIEstimator
+) -> list[float]:
+    """MI(s_{t+σ}; s_{t+σ−Δt}) over the episodes for each shift σ, t the anchor; nan where too few pairs."""
+    curve = []
+    for shift in shifts:
+        pairs = [
+            (states[t + shift], states[t + shift - cfg.delta_t])
+            for states, t in zip(episodes, anchors, strict=True)
+            if t + shift - cfg.delta_t >= 0 and t + shift < len(states)
+        ]
+        if len(pairs) < cfg.min_episodes:
+            curve.append(math.nan)
+            continue
+        now, before = (torch.stack(side)[None] for side in zip(*pairs, strict=True))
+        curve.append(state_mi(now, before, estimator, cfg.state_mi_mode).item())
+    return curve
 
 
-def plot_curve(shifts: list[int], mi: list[float], title: str, path: Path, delta_t: int) -> None:
-    figure, axes = plt.subplots(figsize=(5, 3))
-    axes.plot(shifts, mi, marker="o", markersize=3)
-    axes.axvline(0, color="green", linestyle="--", label="ground-truth key state")
-    axes.set(title=title, xlabel="shift σ (frames)", ylabel=f"MI(s_t+σ; s_t+σ−{delta_t}) [nats]")
+def peak(shifts: list[int], curve: list[float]) -> tuple[float, int]:
+    """The curve's maximum MI and its shift."""
+    return max((mi, shift) for shift, mi in zip(shifts, curve, strict=True) if not math.isnan(mi))
+
+
+def plot_curves(shifts: list[int], curves: dict[str, list[float]], cfg: MIPeakConfig) -> None:
+    figure, axes = plt.subplots(figsize=(6, 3.2))
+    for name, curve in curves.items():
+        axes.plot(shifts, curve, marker="o", markersize=2.5, label=name)
+    axes.axvline(0, color="grey", linestyle="--", label="ground-truth key state")
+    axes.set(
+        title=f"{cfg.dataset.repo_id} ({cfg.estimator}, Δt = {cfg.delta_t})",
+        xlabel="shift σ from the ground-truth key frame (frames)",
+        ylabel="MI(s_t+σ ; s_t+σ−Δt) [nats]",
+    )
     axes.legend(fontsize=7)
     figure.tight_layout()
-    figure.savefig(path, dpi=100)
+    cfg.output.parent.mkdir(parents=True, exist_ok=True)
+    figure.savefig(cfg.output, dpi=100)
     plt.close(figure)
 
 
@@ -70,21 +88,23 @@ def main(cfg: MIPeakConfig) -> None:
     root = cfg.dataset.resolved_root()
     states = load_episode_states(root, cfg.state_key)
     truth = read_episode_column(root, GT_KEY_FRAMES)
+    num_subgoals = len(truth[next(iter(states))]) - 1  # the last entry is the final frame
     try:
-        names = read_episode_column(root, GT_KEY_FRAME_NAMES)[next(iter(states))]
+        names = read_episode_column(root, GT_KEY_FRAME_NAMES)[next(iter(states))][:num_subgoals]
     except KeyError:
-        names = [f"key{k}" for k in range(len(truth[next(iter(states))]))]
+        names = [f"sub-goal {k}" for k in range(num_subgoals)]
     estimator = load_estimator(cfg.estimator)
     shifts = list(range(-cfg.max_shift, cfg.max_shift + 1))
     episodes = list(states.values())
-    cfg.output_dir.mkdir(parents=True, exist_ok=True)
-    for k, name in enumerate(names):
-        anchors = [truth[index][k] for index in states]
-        mi = [mi_at_shift(episodes, anchors, s, cfg, estimator) for s in tqdm(shifts, desc=name)]
-        path = cfg.output_dir / f"{k}_{name}.png"
-        plot_curve(shifts, mi, f"{cfg.dataset.repo_id}: {name} ({cfg.estimator})", path, cfg.delta_t)
-        peak = shifts[max(range(len(mi)), key=lambda i: mi[i] if mi[i] == mi[i] else float("-inf"))]
-        print(f"{name}: MI at σ=0 {mi[cfg.max_shift]:.3f}, maximum at σ={peak} -> {path}")
+    curves = {
+        name: mi_curve(episodes, [truth[index][k] for index in states], shifts, cfg, estimator)
+        for k, name in enumerate(tqdm(names, desc="sub-goals"))
+    }
+    plot_curves(shifts, curves, cfg)
+    for name, curve in curves.items():
+        highest, shift = peak(shifts, curve)
+        print(f"{name}: MI at σ=0 {curve[cfg.max_shift]:.3f}, maximum {highest:.3f} at σ={shift}")
+    print(f"-> {cfg.output}")
 
 
 if __name__ == "__main__":

@@ -1,6 +1,8 @@
 """Shared fixtures. Tests never touch the network: the hub runs in offline mode."""
 
+import importlib.util
 import os
+from pathlib import Path
 
 os.environ["HF_HUB_OFFLINE"] = "1"  # before any huggingface_hub / lerobot import
 
@@ -42,3 +44,12 @@ def state_dataset(tmp_path):
 @pytest.fixture
 def generator():
     return torch.Generator().manual_seed(0)
+
+
+def load_benchmark(name: str):
+    """A script under `benchmarks/` (not a package) imported as a module."""
+    path = Path(__file__).resolve().parents[1] / "benchmarks" / f"{name}.py"
+    spec = importlib.util.spec_from_file_location(name, path)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module

@@ -1,6 +1,5 @@
 """The result-table runner's bookkeeping, with the command-line tools replaced by a recorder."""
 
-import importlib.util
 import json
 import subprocess
 from pathlib import Path
@@ -8,12 +7,9 @@ from pathlib import Path
 import pytest
 
 from lerobot_maxmi import pipeline
+from tests.conftest import load_benchmark
 
-spec = importlib.util.spec_from_file_location(
-    "run_table", Path(__file__).resolve().parents[1] / "benchmarks" / "run_table.py"
-)
-run_table = importlib.util.module_from_spec(spec)
-spec.loader.exec_module(run_table)
+run_table = load_benchmark("run_table")
 
 
 class FakeTools:
