@@ -71,7 +71,7 @@ def plot_curves(shifts: list[int], curves: dict[str, list[float]], cfg: MIPeakCo
         axes.plot(shifts, curve, marker="o", markersize=2.5, label=name)
     axes.axvline(0, color="grey", linestyle="--", label="ground-truth key state")
     axes.set(
-        title=f"{cfg.dataset.repo_id} ({cfg.estimator}, Δt = {cfg.delta_t})",
+        title=f"{cfg.dataset.repo_id} ({cfg.estimator}, {cfg.state_mi_mode}, Δt = {cfg.delta_t})",
         xlabel="shift σ from the ground-truth key frame (frames)",
         ylabel="MI(s_t+σ ; s_t+σ−Δt) [nats]",
     )
@@ -88,9 +88,10 @@ def main(cfg: MIPeakConfig) -> None:
     root = cfg.dataset.resolved_root()
     states = load_episode_states(root, cfg.state_key)
     truth = read_episode_column(root, GT_KEY_FRAMES)
-    num_subgoals = len(truth[next(iter(states))]) - 1  # the last entry is the final frame
+    first = next(iter(states))
+    num_subgoals = len(truth[first]) - 1  # the last entry is the final frame
     try:
-        names = read_episode_column(root, GT_KEY_FRAME_NAMES)[next(iter(states))][:num_subgoals]
+        names = read_episode_column(root, GT_KEY_FRAME_NAMES)[first][:num_subgoals]
     except KeyError:
         names = [f"sub-goal {k}" for k in range(num_subgoals)]
     estimator = load_estimator(cfg.estimator)
