@@ -39,6 +39,7 @@ class MIPeakConfig:
     delta_t: int = 2  # frames
     max_shift: int = 20  # σ ranges over [−max_shift, max_shift] frames
     min_episodes: int = 8  # fewer pairs than this at a shift gives no estimate
+    seed: int = 0  # sliced mode: the random projections, the same at every shift
 
 
 def mi_curve(
@@ -56,7 +57,10 @@ def mi_curve(
             curve.append(math.nan)
             continue
         now, before = (torch.stack(side)[None] for side in zip(*pairs, strict=True))
-        curve.append(state_mi(now, before, estimator, cfg.state_mi_mode).item())
+        # A fresh generator per shift: every shift is scored with the same projections, so the
+        # curve's shape comes from the states, not from the projection draw.
+        projections = torch.Generator().manual_seed(cfg.seed)
+        curve.append(state_mi(now, before, estimator, cfg.state_mi_mode, generator=projections).item())
     return curve
 
 

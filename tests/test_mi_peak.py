@@ -34,3 +34,13 @@ def test_mi_curve_is_nan_where_too_few_episodes_reach():
     episodes = [torch.randn(10, 2) for _ in range(8)]
     curve = mi_peak.mi_curve(episodes, [9] * 8, [0, 1], cfg, load_estimator("ksg"))
     assert not math.isnan(curve[0]) and math.isnan(curve[1])
+
+
+def test_sliced_curve_scores_every_shift_with_the_same_projections():
+    # Episodes that repeat with period 8 give identical pair sets at σ = 0 and σ = 8, so the two
+    # shifts must get identical MI; fresh projections per shift would give different values.
+    generator = torch.Generator().manual_seed(0)
+    cfg = mi_peak.MIPeakConfig(dataset=DatasetLocation(repo_id="local/synthetic"), state_mi_mode="sliced")
+    episodes = [torch.randn(8, 5, generator=generator).repeat(4, 1) for _ in range(32)]
+    curve = mi_peak.mi_curve(episodes, [12] * 32, [0, 8], cfg, load_estimator("ksg"))
+    assert curve[0] == curve[1]
