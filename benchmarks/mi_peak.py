@@ -1,7 +1,8 @@
 """The MaxMI paper's Fig. 2: does MI(s_{t_k+σ}; s_{t_k+σ−Δt}) across demonstrations peak at key states?
 
     .venv/bin/python benchmarks/mi_peak.py --dataset.repo_id=local/pick --dataset.root=data/pick \
-        --output=outputs/mi_peak/pick.png [--estimator=ksg] [--delta_t=2] [--max_shift=20]
+        --output=outputs/mi_peak/pick.png [--estimator=ksg] [--delta_t=2] [--max_shift=20] \
+        [--state_mi_mode=sliced --seed=0]
 
 For each ground-truth sub-goal k (per-episode `gt/key_frames` without the final frame, named by
 `gt/key_frame_names` when present) and each shift σ in [−max_shift, max_shift], the pairs
