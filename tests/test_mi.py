@@ -1,5 +1,8 @@
 """Mutual-information estimators: API contract, correctness on known distributions, gradients."""
 
+import json
+import math
+
 import pytest
 import torch
 
@@ -11,7 +14,7 @@ from lerobot_maxmi.mi.ground_truth import (
     sample_bivariate_gaussian,
 )
 from lerobot_maxmi.mi.infonet import InfoNetConfig
-from lerobot_maxmi.mi.normalize import rank_normalize
+from lerobot_maxmi.mi.normalize import binned_copula_mi, hard_rank, rank_normalize
 
 DIFFERENTIABLE = ["infonet", "infonet_regression", "gaussian"]
 
@@ -98,6 +101,14 @@ def test_rank_normalize_handles_ties_and_passes_gradients():
     assert x.grad[0, 0] > 0 and torch.isfinite(x.grad).all()
 
 
+def test_binned_copula_mi_is_zero_when_independent_and_log_bins_when_identical(generator):
+    u, v = (hard_rank(torch.randn(4, 4096, generator=generator)) for _ in range(2))
+    assert binned_copula_mi(u, v, bins=8).abs().max() < 0.01
+    same, n, bins = hard_rank(torch.randn(1, 120, generator=generator)), 120, 6
+    expected = math.log(bins) + (bins - 1) / (2 * n)  # plug-in MI plus the Miller–Madow term
+    torch.testing.assert_close(binned_copula_mi(same, same, bins), torch.tensor([expected]))
+
+
 def test_monte_carlo_mi_matches_closed_form_for_one_component(generator):
     mixtures = random_gaussian_mixtures(8, max_components=1, generator=generator)
     cov = mixtures.covariances[:, 0]
@@ -138,10 +149,22 @@ def test_state_mi_rejects_unknown_mode():
 def test_infonet_save_and_load_round_trip(tmp_path, generator):
     model = InfoNet(**vars(InfoNetConfig(dim=16, num_latents=4, num_layers=1, grid_size=8)))
     model.save_pretrained(tmp_path / "infonet")
-    reloaded = load_estimator("infonet", pretrained=str(tmp_path / "infonet"))
     x, y = correlated_sets([0.5], 64, generator)
-    torch.testing.assert_close(reloaded(x, y), InfoNetEstimator(model)(x, y))
+    for name, head in (("infonet", "critic"), ("infonet_regression", "regression")):
+        reloaded = load_estimator(name, pretrained=str(tmp_path / "infonet"))
+        torch.testing.assert_close(reloaded(x, y), InfoNetEstimator(model, head)(x, y))
     assert (tmp_path / "infonet" / "model.safetensors").exists()
+
+
+def test_infonet_saved_before_the_binned_statistics_still_loads(tmp_path, generator):
+    """Weights whose config.json predates `histogram_bins` have a head that reads three statistics."""
+    sizes = {**vars(InfoNetConfig(dim=16, num_latents=4, num_layers=1, grid_size=8)), "histogram_bins": ()}
+    InfoNet(**sizes).save_pretrained(tmp_path / "old")
+    config = json.loads((tmp_path / "old" / "config.json").read_text())
+    del config["histogram_bins"]
+    (tmp_path / "old" / "config.json").write_text(json.dumps(config))
+    x, y = correlated_sets([0.5], 64, generator)
+    assert torch.isfinite(load_estimator("infonet_regression", pretrained=str(tmp_path / "old"))(x, y)).all()
 
 
 def test_hub_repo_id_goes_through_the_hub_client():

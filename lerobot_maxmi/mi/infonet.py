@@ -7,8 +7,9 @@ encoder (latents cross-attend to the pairs, then self-attend) and has two heads:
   bound  Î = mean_i θ(u_i, v_i) − log E_{u,v ~ U(0,1)^2} exp θ(u, v).  Copula marginals are
   exactly uniform, so the product-of-marginals term is the mean of exp θ over the grid: no
   shuffling, no permutation noise. This is the InfoNet design.
-* ``regression``: MI read directly from the pooled latents and three statistics of the set (the
-  critic's DV estimate, the Gaussian-copula MI and log N), trained to Monte-Carlo ground truth.
+* ``regression``: MI read directly from the pooled latents and statistics of the set (the critic's
+  DV estimate, the Gaussian-copula MI, log N and binned plug-in MIs), trained to Monte-Carlo
+  ground truth.
 """
 
 import math
@@ -19,7 +20,7 @@ import torch.nn.functional as F  # noqa: N812
 from huggingface_hub import PyTorchModelHubMixin
 from torch import Tensor, nn
 
-from lerobot_maxmi.mi.normalize import gaussian_copula_mi
+from lerobot_maxmi.mi.normalize import binned_copula_mi, gaussian_copula_mi
 
 HEADS = ("critic", "regression")
 # Log set sizes are centred on the middle of the pretraining range (64 to 1024 pairs).
@@ -38,6 +39,9 @@ class InfoNetConfig:
     critic_rank: int = 16
     num_frequencies: int = 4
     regression_width: int = 256
+    # Grids of the plug-in MIs the regression head reads: coarse ones are steady at N = 100, fine
+    # ones resolve mixtures' structure at N = 1000.
+    histogram_bins: tuple[int, ...] = (3, 4, 6, 8, 12, 16)
 
 
 def fourier_features(points: Tensor, num_frequencies: int) -> Tensor:
@@ -92,9 +96,9 @@ class CrossAttentionBlock(nn.Module):
 
 
 class RegressionHead(nn.Module):
-    """MI from the mean latent and (B, 3) set statistics, through an MLP; softplus keeps it non-negative."""
+    """MI from the mean latent and (B, S) set statistics, through an MLP; softplus keeps it non-negative."""
 
-    def __init__(self, dim: int, width: int, num_statistics: int = 3):
+    def __init__(self, dim: int, width: int, num_statistics: int):
         super().__init__()
         self.norm = nn.LayerNorm(dim)
         self.mlp = nn.Sequential(
@@ -123,9 +127,11 @@ class InfoNet(nn.Module, PyTorchModelHubMixin, library_name="lerobot_maxmi", tag
         critic_rank: int,
         num_frequencies: int,
         regression_width: int,
+        histogram_bins: tuple[int, ...] = (),  # () for weights saved before the head read plug-in MIs
     ):
         super().__init__()
         self.grid_size = grid_size
+        self.histogram_bins = tuple(histogram_bins)
         self.num_frequencies = num_frequencies
         in_features = 2 + 4 * num_frequencies
 
@@ -149,7 +155,8 @@ class InfoNet(nn.Module, PyTorchModelHubMixin, library_name="lerobot_maxmi", tag
         self.norm_axis = nn.LayerNorm(dim)
         self.norm_latents = nn.LayerNorm(dim)
         self.critic_out = nn.Sequential(nn.LayerNorm(dim), nn.Linear(dim, critic_rank + 1))
-        self.regression_head = RegressionHead(dim, regression_width)
+        # Statistics: DV estimate, Gaussian-copula MI, log N, one plug-in MI per grid.
+        self.regression_head = RegressionHead(dim, regression_width, 3 + len(self.histogram_bins))
         centres = ((torch.arange(grid_size) + 0.5) / grid_size).unsqueeze(-1)
         self.register_buffer("grid_centres", centres, persistent=False)
 
@@ -181,10 +188,13 @@ class InfoNet(nn.Module, PyTorchModelHubMixin, library_name="lerobot_maxmi", tag
 
         Attention pooling averages over the pairs, so the latents alone do not tell 100 pairs from
         1,000 and cannot correct small-sample bias; log N, the critic's DV estimate and the Gaussian-copula
-        MI give the head that context.
+        MI give the head that context. The plug-in MIs on fine grids carry what 16 latents lose of a
+        large set's detail.
         """
         log_set_size = torch.full_like(u[:, 0], math.log(u.shape[1]) - LOG_SET_SIZE_CENTRE)
-        statistics = torch.stack([donsker_varadhan(table, u, v), gaussian_copula_mi(u, v), log_set_size], -1)
+        binned = [binned_copula_mi(u, v, bins) for bins in self.histogram_bins]
+        statistics = [donsker_varadhan(table, u, v), gaussian_copula_mi(u, v), log_set_size, *binned]
+        statistics = torch.stack(statistics, -1)
         return self.regression_head(latents, statistics)
 
     def forward(self, u: Tensor, v: Tensor, head: str = "critic") -> Tensor:

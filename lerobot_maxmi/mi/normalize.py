@@ -64,3 +64,23 @@ def gaussian_copula_mi(u: Tensor, v: Tensor) -> Tensor:
     denominator = (zu.square().sum(1) * zv.square().sum(1)).sqrt().clamp_min(1e-12)
     rho = (zu * zv).sum(1) / denominator
     return -0.5 * torch.log1p(-rho.square().clamp(max=1 - 1e-6))
+
+
+def binned_copula_mi(u: Tensor, v: Tensor, bins: int) -> Tensor:
+    """Plug-in MI of (B, N) copula samples on a bins × bins grid, with the Miller–Madow bias correction.
+
+    Piecewise constant in the samples (no gradient); a cheap statistic whose accuracy grows with N.
+    """
+    batch, n = u.shape
+    cell_u, cell_v = ((t * bins).long().clamp(0, bins - 1) for t in (u, v))
+    counts = torch.zeros(batch, bins * bins, dtype=u.dtype, device=u.device)
+    counts.scatter_add_(1, cell_u * bins + cell_v, torch.ones_like(u))
+    joint = counts.view(batch, bins, bins) / n
+    marginals = (joint.sum(2), joint.sum(1))
+
+    def entropy(p: Tensor) -> Tensor:
+        return -torch.special.xlogy(p, p).flatten(1).sum(1)
+
+    occupied = [(p > 0).flatten(1).sum(1) for p in (joint, *marginals)]
+    miller_madow = (occupied[0] - occupied[1] - occupied[2] + 1) / (2 * n)
+    return entropy(marginals[0]) + entropy(marginals[1]) - entropy(joint) - miller_madow
