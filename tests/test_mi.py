@@ -59,6 +59,20 @@ def test_gradients_reach_the_samples(name, generator):
     assert x.grad.abs().sum() > 0
 
 
+@pytest.mark.parametrize("name", DIFFERENTIABLE)
+@pytest.mark.parametrize("scale", [0.0, 1e-36])
+def test_state_mi_gradients_stay_finite_on_constant_dimensions(name, scale, generator):
+    """A concept parked on frame 0 reads a state dimension as (soft-argmax ~1e-36) × (next frame): constant
+    up to rounding. Per-dim MI counts it as 0, and its gradient must not turn the whole batch to NaN."""
+    s_a = torch.randn(2, 64, 3, generator=generator)
+    s_a[..., 0] = scale * torch.randn(2, 64, generator=generator)
+    s_b = (s_a + 0.1 * torch.randn(2, 64, 3, generator=generator)).requires_grad_(True)
+    s_a.requires_grad_(True)
+    state_mi(s_a, s_b, load_estimator(name), mode="per_dim").sum().backward()
+    assert torch.isfinite(s_a.grad).all() and torch.isfinite(s_b.grad).all()
+    assert s_a.grad[..., 1:].abs().sum() > 0
+
+
 def test_gradient_ascent_increases_dependence(generator):
     """Following d(MI)/dx should make x more dependent on y: the signal MaxMI trains on."""
     x, y = correlated_sets([0.2], 200, generator)

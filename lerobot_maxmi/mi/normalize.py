@@ -10,6 +10,8 @@ import torch
 from torch import Tensor
 
 MIN_SAMPLES = 4
+# Below this variance a column is constant for the soft rank (float32 loses (0.1·std)² below about 1e-36).
+VARIANCE_FLOOR = 1e-30
 
 
 def check_pairs(x: Tensor, y: Tensor) -> None:
@@ -42,9 +44,16 @@ def hard_rank(x: Tensor) -> Tensor:
 
 
 def soft_rank(x: Tensor, temperature: float) -> Tensor:
-    """Sigmoid relaxation of `hard_rank`; the width is `temperature` standard deviations."""
-    std = x.std(dim=-1, keepdim=True)
-    width = torch.where(std > 0, temperature * std, torch.ones_like(std))
+    """Sigmoid relaxation of `hard_rank`; the width is `temperature` standard deviations.
+
+    A column that is constant up to rounding has no scale to relax over, so it gets unit width. Its std
+    is taken on a stand-in: std's gradient there is 0/0 (or (1/width)² overflows), and masking only the
+    width would still send that NaN back to x.
+    """
+    varies = x.detach().var(dim=-1, keepdim=True) > VARIANCE_FLOOR
+    stand_in = torch.arange(x.shape[-1], dtype=x.dtype, device=x.device)
+    std = torch.where(varies, x, stand_in).std(dim=-1, keepdim=True)
+    width = torch.where(varies, temperature * std, torch.ones_like(std))
     return torch.sigmoid((x.unsqueeze(-1) - x.unsqueeze(-2)) / width.unsqueeze(-1)).mean(dim=-1)
 
 
@@ -61,7 +70,8 @@ def gaussian_copula_mi(u: Tensor, v: Tensor) -> Tensor:
     """MI of the Gaussian copula of (B, N) copula samples in (0, 1): normal scores, then −½ log(1 − ρ²)."""
     zu, zv = (torch.special.ndtri(t) for t in (u, v))
     zu, zv = zu - zu.mean(1, keepdim=True), zv - zv.mean(1, keepdim=True)
-    denominator = (zu.square().sum(1) * zv.square().sum(1)).sqrt().clamp_min(1e-12)
+    # Clamped before the root: √'s gradient at a constant column's 0 is infinite.
+    denominator = (zu.square().sum(1) * zv.square().sum(1)).clamp_min(1e-24).sqrt()
     rho = (zu * zv).sum(1) / denominator
     return -0.5 * torch.log1p(-rho.square().clamp(max=1 - 1e-6))
 
