@@ -1,5 +1,6 @@
 """Training KSL-Net and localizing key frames: determinism and input checks (tiny configs)."""
 
+import logging
 import subprocess
 import sys
 
@@ -33,6 +34,16 @@ def test_same_seed_gives_same_key_frames(objective):
     assert first == second
     for frames, states in zip(first, episodes, strict=True):
         assert frames == sorted(frames) and frames[-1] == len(states) - 1  # final frame appended
+
+
+def test_a_collapsed_objective_is_reported(caplog):
+    """The released objective pulls every concept to one position on random walks; the user is told."""
+    episodes = random_walks(16)
+    cfg = tiny_config(objective="released", num_concepts=3, steps=30, batch_size=16)
+    with caplog.at_level(logging.WARNING):
+        step = fit_localizer(episodes, cfg)
+    assert len(step.key_frames(episodes)[0]) == 2  # one concept + the final frame
+    assert "the objective collapsed" in caplog.text
 
 
 @pytest.mark.parametrize(

@@ -162,4 +162,12 @@ def fit_localizer(episodes: list[Tensor], cfg: DiscoveryConfig) -> MaxmiDiscover
         fractions.tolist(), confidence.mean(dim=0).tolist(), cfg.nms_radius, cfg.append_final_frame
     )
     logging.info("kept %d of %d concepts dataset-wide: %s", len(concepts), cfg.num_concepts, concepts)
+    if len(concepts) == 1 < cfg.num_concepts:
+        logging.warning(
+            "all %d concepts sit within --discovery.nms_radius of one another, so one key state is kept: "
+            "the objective collapsed. Concepts collapse without the diversity term "
+            "(--discovery.diversity_weight=0) and under --discovery.objective=released; a larger "
+            "--discovery.diversity_weight spreads them.",
+            cfg.num_concepts,
+        )
     return MaxmiDiscoveryStep.from_net(net, concepts, cfg.append_final_frame, **asdict(cfg.model))
