@@ -46,13 +46,11 @@ def hard_rank(x: Tensor) -> Tensor:
 def soft_rank(x: Tensor, temperature: float) -> Tensor:
     """Sigmoid relaxation of `hard_rank`; the width is `temperature` standard deviations.
 
-    A column that is constant up to rounding has no scale to relax over, so it gets unit width. Its std
-    is taken on a stand-in: std's gradient there is 0/0 (or (1/width)² overflows), and masking only the
-    width would still send that NaN back to x.
+    A column that is constant up to rounding gets unit width: with a width of ~1e-37 the gradient
+    through 1/width² overflows, and NaN would reach x even where the caller masks the column's MI.
     """
+    std = x.std(dim=-1, keepdim=True)
     varies = x.detach().var(dim=-1, keepdim=True) > VARIANCE_FLOOR
-    stand_in = torch.arange(x.shape[-1], dtype=x.dtype, device=x.device)
-    std = torch.where(varies, x, stand_in).std(dim=-1, keepdim=True)
     width = torch.where(varies, temperature * std, torch.ones_like(std))
     return torch.sigmoid((x.unsqueeze(-1) - x.unsqueeze(-2)) / width.unsqueeze(-1)).mean(dim=-1)
 
