@@ -10,8 +10,8 @@ import torch
 from torch import Tensor
 
 MIN_SAMPLES = 4
-# Below this variance a column is constant for the soft rank (float32 loses (0.1·std)² below about 1e-36).
-VARIANCE_FLOOR = 1e-30
+# Below this std a column is constant for the soft rank (float32 loses (0.1·std)² below about 1e-18).
+MIN_STD = 1e-15
 
 
 def check_pairs(x: Tensor, y: Tensor) -> None:
@@ -50,8 +50,7 @@ def soft_rank(x: Tensor, temperature: float) -> Tensor:
     through 1/width² overflows, and NaN would reach x even where the caller masks the column's MI.
     """
     std = x.std(dim=-1, keepdim=True)
-    varies = x.detach().var(dim=-1, keepdim=True) > VARIANCE_FLOOR
-    width = torch.where(varies, temperature * std, torch.ones_like(std))
+    width = torch.where(std > MIN_STD, temperature * std, torch.ones_like(std))
     return torch.sigmoid((x.unsqueeze(-1) - x.unsqueeze(-2)) / width.unsqueeze(-1)).mean(dim=-1)
 
 
