@@ -9,8 +9,9 @@ lerobot-eval on seen initial configurations (the demos' own seeds) and unseen on
 1,000,000 on). Every finished cell is stored in `<output_dir>/results.json` under its full
 configuration; a cell already there is skipped, so an interrupted run continues where it stopped.
 Runners for different tasks may share an output directory and run at the same time.
-A cell whose command fails is not stored. The tables (`<output_dir>/tables.md`) are regenerated
-from the JSON after every cell, and on their own with `--run=false`.
+A cell whose command fails is not stored. The tables (`<output_dir>/tables.md`: all tasks side by
+side in the paper's Table 1/2 layout, then every rate per task) are regenerated from the JSON after
+every cell, and on their own with `--run=false`.
 """
 
 import fcntl
@@ -215,33 +216,68 @@ def unit(metric: str) -> str:
     return "(mean)" if metric in MEAN_METRICS else "%"
 
 
-def variant_row(variant: str, cells: list[dict], rate_names: list[str]) -> str:
-    def both(name: str) -> str:
-        digits = 2 if name in MEAN_METRICS else 0
-        seen, unseen = ([cell[split][name] for cell in cells] for split in ("seen", "unseen"))
-        return f"{mean_spread(seen, digits)} / {mean_spread(unseen, digits)}"
+def seen_unseen(cells: list[dict], name: str) -> str:
+    """One metric over the cells' seeds, "seen / unseen" (mean ± sd where several seeds ran)."""
+    digits = 2 if name in MEAN_METRICS else 0
+    seen, unseen = ([cell[split][name] for cell in cells] for split in ("seen", "unseen"))
+    return f"{mean_spread(seen, digits)} / {mean_spread(unseen, digits)}"
 
-    return "| " + " | ".join([variant, str(len(cells)), *map(both, rate_names)]) + " |"
+
+def variant_row(variant: str, cells: list[dict], rate_names: list[str]) -> str:
+    return row([variant, str(len(cells)), *(seen_unseen(cells, name) for name in rate_names)])
+
+
+def headline(cells: list[dict]) -> str:
+    """The metric a task is ranked by: success, or the kitchen's count of completed subtasks."""
+    return NUM_TASKS_COMPLETED if NUM_TASKS_COMPLETED in cells[0]["unseen"] else "success"
+
+
+def row(values: list[str]) -> str:
+    return "| " + " | ".join(values) + " |"
+
+
+def table(header: list[str], rows: list[str]) -> str:
+    return "\n".join([row(header), "|" + "---|" * len(header), *rows])
+
+
+def summary_table(by_task: dict[str, dict[str, list[dict]]]) -> str:
+    """The paper's Table 1/2 layout: a row per variant, a column per task, its headline metric."""
+    metrics = {task: headline(next(iter(by_variant.values()))) for task, by_variant in by_task.items()}
+    header = ["variant", *(f"{task} {metric} {unit(metric)}" for task, metric in metrics.items())]
+    rows = []
+    for variant in sorted({variant for by_variant in by_task.values() for variant in by_variant}):
+        values = []
+        for task, metric in metrics.items():
+            cells = by_task[task].get(variant)
+            seeds = f" ({len(cells)} seeds)" if cells and len(cells) > 1 else ""
+            values.append(seen_unseen(cells, metric) + seeds if cells else "—")
+        rows.append(row([variant, *values]))
+    return table(header, rows)
+
+
+def task_table(by_variant: dict[str, list[dict]]) -> str:
+    """A row per variant: success and sub-task rates, seen / unseen."""
+    rate_names = list(next(iter(by_variant.values()))[0]["unseen"])
+    header = ["variant", "seeds", *(f"{name} {unit(name)} (seen / unseen)" for name in rate_names)]
+    rows = [variant_row(variant, cells, rate_names) for variant, cells in sorted(by_variant.items())]
+    return table(header, rows)
 
 
 def markdown_tables(results: dict) -> str:
-    """One table per (task, profile): a row per variant; success and sub-task rates, seen / unseen."""
-    groups: dict[tuple[str, str], dict[str, list[dict]]] = {}
+    """Per profile (the cells' sizes): all tasks side by side, then one table per task."""
+    groups: dict[str, dict[str, dict[str, list[dict]]]] = {}
     for cell in results.values():
-        sizes = {k: v for k, v in cell["config"].items() if k not in ("task", "variant", "seed")}
-        group = groups.setdefault((cell["config"]["task"], json.dumps(sizes)), {})
-        group.setdefault(cell["config"]["variant"], []).append(cell)
+        config = cell["config"]
+        sizes = ", ".join(
+            f"{k} {v}" for k, v in sorted(config.items()) if k not in ("task", "variant", "seed")
+        )
+        by_task = groups.setdefault(sizes, {}).setdefault(config["task"], {})
+        by_task.setdefault(config["variant"], []).append(cell)
     sections = [f"Machine: {machine()}"]
-    for (task, sizes), by_variant in sorted(groups.items()):
-        rate_names = list(next(iter(by_variant.values()))[0]["unseen"])
-        header = ["variant", "seeds", *(f"{name} {unit(name)} (seen / unseen)" for name in rate_names)]
-        lines = [
-            f"### {task}",
-            ", ".join(f"{key} {value}" for key, value in json.loads(sizes).items()),
-            "| " + " | ".join(header) + " |\n|" + "---|" * len(header),
-        ]
-        rows = [variant_row(variant, cells, rate_names) for variant, cells in sorted(by_variant.items())]
-        sections.append("\n\n".join(lines[:2]) + "\n\n" + "\n".join([lines[2], *rows]))
+    for sizes, by_task in sorted(groups.items()):
+        by_task = dict(sorted(by_task.items()))
+        sections.append(f"## {sizes}\n\n### All tasks, seen / unseen\n\n{summary_table(by_task)}")
+        sections += [f"### {task}\n\n{task_table(by_variant)}" for task, by_variant in by_task.items()]
     return "\n\n".join(sections)
 
 

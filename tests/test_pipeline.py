@@ -133,3 +133,21 @@ def test_task_counts_are_means_not_percentages():
     row = run_table.variant_row("none", [cell], ["tasks_ge_1", "num_tasks_completed"])
     assert row == "| none | 1 | 15 / 13 | 0.19 / 0.13 |"
     assert run_table.unit("num_tasks_completed") == "(mean)" and run_table.unit("tasks_ge_1") == "%"
+
+
+def test_all_tasks_side_by_side_rank_each_task_by_its_headline_metric():
+    def cell(task, variant, seed, seen, unseen, metric="success"):
+        config = {"task": task, "variant": variant, "seed": seed, "num_demos": 100}
+        return {"config": config, "seen": {metric: seen}, "unseen": {metric: unseen}}
+
+    cells = [
+        cell("PickCube-v1", "maxmi", 0, 96.0, 37.0),
+        cell("PickCube-v1", "maxmi", 1, 94.0, 41.0),
+        cell("PickCube-v1", "none", 0, 99.0, 38.0),
+        cell("FrankaKitchen-v1", "none", 0, 0.19, 0.13, run_table.NUM_TASKS_COMPLETED),
+    ]
+    tables = run_table.markdown_tables({str(i): c for i, c in enumerate(cells)})
+
+    assert "| variant | FrankaKitchen-v1 num_tasks_completed (mean) | PickCube-v1 success % |" in tables
+    assert "| maxmi | — | 95 ± 1 / 39 ± 3 (2 seeds) |" in tables
+    assert "| none | 0.19 / 0.13 | 99 / 38 |" in tables
