@@ -1,0 +1,30 @@
+"""The Gaussian MAE floor (benchmarks/mi_floor.py) that the estimators' accuracy targets are read against."""
+
+import torch
+
+from lerobot_maxmi.mi.ground_truth import bivariate_gaussian_mi, sample_bivariate_gaussian
+from tests.conftest import load_benchmark
+
+mi_floor = load_benchmark("mi_floor")
+
+
+def test_bartlett_correlations_match_sample_correlations_of_drawn_pairs():
+    torch.manual_seed(0)
+    rho = torch.tensor([0.0, 0.6, 0.9], dtype=torch.float64)
+    drawn = mi_floor.sample_correlations(rho, num_samples=20, draws=20_000)
+    pairs = sample_bivariate_gaussian(rho.repeat_interleave(20_000), 20)
+    direct = mi_floor.pearson(pairs[..., 0], pairs[..., 1]).view(3, 20_000)
+    assert torch.allclose(drawn.mean(1), direct.mean(1), atol=0.01)
+    assert torch.allclose(drawn.std(1), direct.std(1), rtol=0.03)
+
+
+def test_the_posterior_median_beats_the_plug_in_and_shrinks_with_n():
+    torch.manual_seed(0)
+    posterior_median, plug_in = {}, {}
+    for n in (30, 300):
+        floor = mi_floor.PosteriorMedian(n, grid=96, draws=2000, bins=200)
+        abs_r, truth = floor.draw(), floor.mi.unsqueeze(1)
+        posterior_median[n] = (floor(abs_r) - truth).abs().mean()
+        plug_in[n] = (bivariate_gaussian_mi(abs_r.clamp(max=1 - 1e-12)) - truth).abs().mean()
+    assert posterior_median[30] < plug_in[30]  # the plug-in's upward bias shows at small N
+    assert posterior_median[300] < posterior_median[30] / 2
