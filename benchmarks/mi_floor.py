@@ -2,8 +2,9 @@
 
     .venv/bin/python benchmarks/mi_floor.py
 
-Those rows draw ρ ~ U(−0.95, 0.95) and N samples of a bivariate Gaussian. Every estimator we ship
-reads ranks, so none changes when x or y is shifted or scaled. Among such estimators the sample
+Those rows draw ρ ~ U(−0.95, 0.95) and N samples of a bivariate Gaussian. None of the estimators
+there changes when x or y is shifted or scaled (ours read ranks; scikit-learn's KSG standardizes
+each variable first). Among such estimators the sample
 correlation r carries all that the data say about ρ, and the one with the least MAE is the
 posterior median of MI given r. Its MAE (the Bayes risk) is a floor for every estimator in that
 table, even one told that the data are Gaussian.
