@@ -4,10 +4,9 @@
 
 Those rows draw ρ ~ U(−0.95, 0.95) and N samples of a bivariate Gaussian. None of the estimators
 there changes when x or y is shifted or scaled (ours read ranks; scikit-learn's KSG standardizes
-each variable first). Among such estimators the sample
-correlation r carries all that the data say about ρ, and the one with the least MAE is the
-posterior median of MI given r. Its MAE (the Bayes risk) is a floor for every estimator in that
-table, even one told that the data are Gaussian.
+each variable first). Among such estimators the sample correlation r carries all that the data
+say about ρ, and the one with the least MAE is the posterior median of MI given r. Its MAE (the
+Bayes risk) is a floor for every estimator in that table, even one told that the data are Gaussian.
 
 r is drawn exactly for a grid of ρ (Bartlett's decomposition of the Wishart scatter matrix). The
 posterior median is read per bin of |r| from one draw and scored on a second, independent one (an
