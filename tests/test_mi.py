@@ -8,6 +8,7 @@ import torch
 
 from lerobot_maxmi.mi import ESTIMATORS, InfoNet, load_estimator, state_mi
 from lerobot_maxmi.mi.estimators import InfoNetEstimator
+from lerobot_maxmi.mi.evaluate import evaluate_estimators, format_table
 from lerobot_maxmi.mi.ground_truth import (
     bivariate_gaussian_mi,
     random_gaussian_mixtures,
@@ -204,3 +205,22 @@ def test_attention_rewrites_match_torch_modules(generator):
         16, 4, 64, dropout=0.0, activation="gelu", batch_first=True, norm_first=True
     )
     torch.testing.assert_close(pre_norm_layer(layer, context), layer(context))
+
+
+def test_accuracy_rows_score_each_estimator_with_its_standard_error():
+    rows = evaluate_estimators(
+        ["gaussian", "ksg"], ["gaussian", "gmm"], [64], count=16, seed=0, mc_samples=2000
+    )
+
+    assert [(r.family, r.estimator) for r in rows] == [
+        ("gaussian", "gaussian"),
+        ("gaussian", "ksg"),
+        ("gmm", "gaussian"),
+        ("gmm", "ksg"),
+    ]
+    assert rows[0].mae < rows[2].mae  # the copula's model is right for Gaussians, wrong for mixtures
+    assert all(0 < r.mae_standard_error < r.mae for r in rows)
+    first = rows[0]
+    assert f"| gaussian | 64 | gaussian | {first.mae:.4f} ± {first.mae_standard_error:.4f} |" in format_table(
+        rows
+    )

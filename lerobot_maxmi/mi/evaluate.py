@@ -35,6 +35,7 @@ class Row:
     num_samples: int
     estimator: str
     mae: float
+    mae_standard_error: float  # over the test distributions: how far the MAE of a fresh draw may move
     bias: float
     ms_per_estimate: float
     gradient_ok: str
@@ -105,6 +106,7 @@ def evaluate_estimators(
                     n,
                     name,
                     error.abs().mean().item(),
+                    error.abs().std().item() / len(error) ** 0.5,
                     error.mean().item(),
                     ms,
                     gradient_check(estimator, sets),
@@ -115,12 +117,12 @@ def evaluate_estimators(
 
 def format_table(rows: list[Row]) -> str:
     lines = [
-        "| family | N | estimator | MAE (nats) | bias (nats) | ms / estimate | d(MI)/dx ok |",
+        "| family | N | estimator | MAE ± s.e. (nats) | bias (nats) | ms / estimate | d(MI)/dx ok |",
         "|---|---:|---|---:|---:|---:|---|",
     ]
     lines += [
-        f"| {r.family} | {r.num_samples} | {r.estimator} | {r.mae:.4f} | {r.bias:+.4f} "
-        f"| {r.ms_per_estimate:.3f} | {r.gradient_ok} |"
+        f"| {r.family} | {r.num_samples} | {r.estimator} | {r.mae:.4f} ± {r.mae_standard_error:.4f} "
+        f"| {r.bias:+.4f} | {r.ms_per_estimate:.3f} | {r.gradient_ok} |"
         for r in rows
     ]
     return "\n".join(lines)
