@@ -21,7 +21,14 @@ import torch
 from torch import Tensor
 from torch.distributions import Chi2
 
-from lerobot_maxmi.mi.evaluate import FAMILIES, MAX_ABS_RHO, TEST_SEED, case_seeds, make_test_sets
+from lerobot_maxmi.mi.evaluate import (
+    FAMILIES,
+    MAX_ABS_RHO,
+    TEST_SEED,
+    case_seeds,
+    mae_and_standard_error,
+    make_test_sets,
+)
 from lerobot_maxmi.mi.ground_truth import bivariate_gaussian_mi
 
 
@@ -76,9 +83,7 @@ class PosteriorMedian:
 
 
 def mean_and_error(errors: Tensor) -> str:
-    """Mean absolute error ± its standard error."""
-    errors = errors.abs().flatten()
-    return f"{errors.mean():.4f} ± {errors.std() / len(errors) ** 0.5:.4f}"
+    return "{:.4f} ± {:.4f}".format(*mae_and_standard_error(errors))
 
 
 def main() -> None:

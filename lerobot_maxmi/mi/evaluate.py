@@ -84,6 +84,12 @@ def gradient_check(estimator: MIEstimator, sets: TestSets) -> str:
     return "yes" if torch.isfinite(x.grad).all() and x.grad.abs().sum() > 0 else "NO"
 
 
+def mae_and_standard_error(error: Tensor) -> tuple[float, float]:
+    """Mean absolute error over the sets, and its standard error (how far a fresh draw may move it)."""
+    absolute = error.abs().flatten()
+    return absolute.mean().item(), absolute.std().item() / len(absolute) ** 0.5
+
+
 def case_seeds(families: list[str], sizes: list[int], seed: int) -> dict[tuple[str, int], int]:
     """The test-set seed of each (family, N) row: one seed per row, so that rows do not share samples."""
     cases = [(family, n) for family in families for n in sizes]
@@ -105,8 +111,7 @@ def evaluate_estimators(
                     family,
                     n,
                     name,
-                    error.abs().mean().item(),
-                    error.abs().std().item() / len(error) ** 0.5,
+                    *mae_and_standard_error(error),
                     error.mean().item(),
                     ms,
                     gradient_check(estimator, sets),
