@@ -49,6 +49,7 @@ class Variant:
     discovery_flags: tuple[str, ...] = ()
     # A LeRobot policy instead of CoTPC, trained on the demos with their state as environment state.
     builtin_policy_flags: tuple[str, ...] = ()
+    num_concepts: int | None = None  # discovery's K, when not the profile's
 
     def policy_flags(self, context_length: int) -> tuple[str, ...]:
         if self.builtin_policy_flags:
@@ -70,6 +71,8 @@ ACT_FLAGS = (
 VARIANTS = {
     "maxmi": Variant("maxmi"),
     "maxmi_released": Variant("maxmi", ("--discovery.objective=released",)),
+    # The paper's K: discovery finds the sub-goals where the cpu profile's K = 4 misses them.
+    "maxmi_k10": Variant("maxmi", num_concepts=10),
     "maxmi_mi_only": Variant("maxmi", ("--discovery.diversity_weight=0",)),
     "maxmi_diversity_only": Variant("maxmi", ("--discovery.mi_weight=0",)),
     "ground_truth": Variant("ground_truth"),
@@ -140,7 +143,7 @@ def run_cell(config: dict, profile: Profile, out: Path) -> dict:
     if variant.selector:
         dataset = cell / "dataset"
         discovery = (
-            f"--discovery.num_concepts={profile.num_concepts}",
+            f"--discovery.num_concepts={variant.num_concepts or profile.num_concepts}",
             f"--discovery.steps={profile.discovery_steps}",
             f"--discovery.seed={seed}",
             f"--discovery.device={profile.device}",

@@ -50,6 +50,14 @@ def table_config(tmp_path, variants):
     return run_table.TableConfig(variants=variants, seeds=[0, 1], output_dir=tmp_path)
 
 
+def test_a_variant_can_set_discoverys_k(monkeypatch, tmp_path):
+    tools = FakeTools()
+    monkeypatch.setattr(pipeline, "run_tool", tools)
+    run_table.run_table(run_table.TableConfig(variants=["maxmi", "maxmi_k10"], output_dir=tmp_path))
+    profile_k = str(run_table.PROFILES["cpu"].num_concepts)
+    assert tools.flag("lerobot-maxmi-discover", "--discovery.num_concepts") == [profile_k, "10"]
+
+
 def test_cells_run_the_pipeline_per_variant_and_are_not_rerun(monkeypatch, tmp_path):
     tools = FakeTools()
     monkeypatch.setattr(pipeline, "run_tool", tools)
