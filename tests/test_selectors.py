@@ -122,3 +122,20 @@ def test_selectors_side_by_side_against_ground_truth(tmp_path):
     assert results["uniform"]["found_within"] == 1.0  # one interior frame at the middle
     table = markdown_table(results)
     assert table.splitlines()[2].startswith("| ground_truth | 2.0 | 0.0 | 100% | 0.0 | 0.0 |")
+
+
+def test_an_annotated_dataset_is_scored_from_its_stored_key_frames(tmp_path):
+    from lerobot_maxmi.discovery.annotate import annotate
+    from tests.test_annotate import config, make_dataset
+
+    source = make_dataset(tmp_path / "src")
+    out = annotate(config(source, tmp_path / "out", "--selector=uniform", "--discovery.num_concepts=3"))
+    discovery = DiscoveryConfig(num_concepts=3)
+    scores = [
+        evaluate_selectors(root, "observation.state", [name], discovery, AWEConfig())[name]
+        for root, name in [(source, "uniform"), (out, "annotated")]
+    ]
+    assert scores[0] == scores[1] and scores[0]["key_frames_per_episode"] == 4.0
+    missing = "needs per-episode 'maxmi/key_frames'.*lerobot-maxmi-discover writes it"
+    with pytest.raises(ValueError, match=missing):
+        evaluate_selectors(source, "observation.state", ["annotated"], DiscoveryConfig(), AWEConfig())

@@ -13,7 +13,7 @@ import torch
 from torch import Tensor
 
 from lerobot_maxmi.discovery.awe import dp_waypoints
-from lerobot_maxmi.discovery.processor import MaxmiDiscoveryStep, load_localizer, save_localizer
+from lerobot_maxmi.discovery.processor import KEY_FRAMES, MaxmiDiscoveryStep, load_localizer, save_localizer
 from lerobot_maxmi.discovery.train import DiscoveryConfig, check_episodes, fit_localizer
 from lerobot_maxmi.episode_metadata import GT_KEY_FRAMES, read_episode_column
 
@@ -39,6 +39,8 @@ class SelectionContext:
 
 
 class KeyFrameSelector(abc.ABC):
+    name: str  # set by register_selector
+
     def __init__(self, context: SelectionContext):
         self.context = context
 
@@ -55,7 +57,7 @@ SELECTORS: dict[str, type[KeyFrameSelector]] = {}
 
 def register_selector(name: str) -> Callable[[type[KeyFrameSelector]], type[KeyFrameSelector]]:
     def register(cls: type[KeyFrameSelector]) -> type[KeyFrameSelector]:
-        SELECTORS[name] = cls
+        SELECTORS[name], cls.name = cls, name
         return cls
 
     return register
@@ -123,23 +125,38 @@ class AWESelector(KeyFrameSelector):
         return [dp_waypoints((states[:, dims] - mean) / scale, awe.error_threshold) for states in episodes]
 
 
-@register_selector("ground_truth")
-class GroundTruthSelector(KeyFrameSelector):
-    """The demo generator's `gt/key_frames` (first frame of each sub-goal, then the final frame)."""
+class StoredKeyFramesSelector(KeyFrameSelector):
+    """Key frames a dataset already carries in a per-episode metadata column."""
+
+    column: str
+    written_by: str  # named in the error when the column is missing
 
     def select(self, episodes: list[Tensor]) -> list[list[int]]:
         try:
-            truth = read_episode_column(self.context.dataset_root, GT_KEY_FRAMES)
+            stored = read_episode_column(self.context.dataset_root, self.column)
         except KeyError as error:
             raise ValueError(
-                f"selector 'ground_truth' needs per-episode {GT_KEY_FRAMES!r} metadata, which the dataset at "
-                f"{self.context.dataset_root} lacks (the ManiSkill demo generator writes it); "
-                "pick another --selector"
+                f"selector {self.name!r} needs per-episode {self.column!r} metadata, which the dataset at "
+                f"{self.context.dataset_root} lacks ({self.written_by} writes it); pick another --selector"
             ) from error
         result = []
         for index, states in zip(self.context.episode_indices, episodes, strict=True):
-            frames = [int(f) for f in truth[index]]
+            frames = [int(f) for f in stored[index]]
             if not frames or not all(0 <= f < len(states) for f in frames):
-                raise ValueError(f"episode {index}: {GT_KEY_FRAMES} {frames} is empty or outside its frames")
+                raise ValueError(f"episode {index}: {self.column} {frames} is empty or outside its frames")
             result.append(frames)
         return result
+
+
+@register_selector("ground_truth")
+class GroundTruthSelector(StoredKeyFramesSelector):
+    """The demo generator's `gt/key_frames` (first frame of each sub-goal, then the final frame)."""
+
+    column, written_by = GT_KEY_FRAMES, "the ManiSkill demo generator"
+
+
+@register_selector("annotated")
+class AnnotatedSelector(StoredKeyFramesSelector):
+    """The key frames an earlier `lerobot-maxmi-discover` run wrote, to score or reuse them."""
+
+    column, written_by = KEY_FRAMES, "lerobot-maxmi-discover"
