@@ -157,6 +157,6 @@ class GroundTruthSelector(StoredKeyFramesSelector):
 
 @register_selector("annotated")
 class AnnotatedSelector(StoredKeyFramesSelector):
-    """The key frames an earlier `lerobot-maxmi-discover` run wrote, to score or reuse them."""
+    """The key frames an earlier `lerobot-maxmi-discover` run wrote, to score them against ground truth."""
 
     column, written_by = KEY_FRAMES, "lerobot-maxmi-discover"
