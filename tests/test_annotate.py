@@ -1,6 +1,7 @@
 """`lerobot-maxmi-discover` end to end on tiny state-only datasets (tiny KSL-Net, few steps)."""
 
 import hashlib
+import json
 import os
 import subprocess
 import sys
@@ -107,6 +108,9 @@ def test_maxmi_annotation_writes_key_states_metadata_stats_localizer_and_plots(s
     np.testing.assert_allclose(key_stats["mean"], np.tile(state_stats["mean"], num_key_states))
     np.testing.assert_allclose(key_stats["std"], np.tile(state_stats["std"], num_key_states))
     assert (out / "maxmi_localizer" / "maxmi_localizer.json").is_file()
+    record = json.loads((out / "maxmi_localizer" / "discovery_config.json").read_text())
+    assert record["discovery"]["num_concepts"] == 3 and record["discovery"]["model"]["encoder_dims"] == [16]
+    assert record["torch_threads"] == torch.get_num_threads() and record["processes"] == 1
     assert sorted(p.name for p in (out / "plots").iterdir()) == [f"episode_{i:06d}.png" for i in range(5)]
 
 
@@ -125,6 +129,7 @@ def test_same_seed_same_key_frames_and_saved_localizer_annotates_without_trainin
         config(source, tmp_path / "c", f"--discovery.pretrained_path={first / 'maxmi_localizer'}")
     )
     assert read_episode_column(reused, KEY_FRAMES) == read_episode_column(first, KEY_FRAMES)
+    assert not (reused / "maxmi_localizer" / "discovery_config.json").exists()  # nothing was trained
 
 
 def test_saved_step_runs_in_a_lerobot_pipeline(source, tmp_path):
@@ -302,7 +307,9 @@ def test_accelerate_launch_trains_in_two_processes_and_writes_once(source, tmp_p
     environment = {**os.environ, "CUDA_VISIBLE_DEVICES": "", "OMP_NUM_THREADS": "1"}
     result = subprocess.run(command, capture_output=True, text=True, timeout=300, env=environment)
     assert result.returncode == 0, result.stderr[-3000:]
-    assert "(2 process(es))" in result.stderr  # the main process's training log line
+    assert "(2 process(es), 1 torch thread(s) each)" in result.stderr  # the main process's training log
     assert result.stderr.count("annotated dataset written") == 1
     assert sorted(p.name for p in output.parent.iterdir()) == ["out"]  # no staging left behind
     assert len(read_episode_column(output, KEY_FRAMES)) == 5
+    record = json.loads((output / "maxmi_localizer" / "discovery_config.json").read_text())
+    assert (record["processes"], record["torch_threads"]) == (2, 1)

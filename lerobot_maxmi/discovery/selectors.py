@@ -5,6 +5,7 @@ last where the selector uses it), so the annotator writes all of them in the sam
 """
 
 import abc
+import json
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -14,10 +15,11 @@ from torch import Tensor
 
 from lerobot_maxmi.discovery.awe import dp_waypoints
 from lerobot_maxmi.discovery.processor import KEY_FRAMES, MaxmiDiscoveryStep, load_localizer, save_localizer
-from lerobot_maxmi.discovery.train import DiscoveryConfig, check_episodes, fit_localizer
+from lerobot_maxmi.discovery.train import DiscoveryConfig, check_episodes, fit_localizer, training_record
 from lerobot_maxmi.episode_metadata import GT_KEY_FRAMES, read_episode_column
 
 LOCALIZER_DIR = "maxmi_localizer"  # inside the annotated dataset's root
+TRAINING_RECORD = "discovery_config.json"  # beside a localizer trained here
 
 
 @dataclass
@@ -85,7 +87,11 @@ class MaxMISelector(KeyFrameSelector):
         return self.step.key_frames(episodes)
 
     def save(self, dataset_root: Path) -> None:
-        save_localizer(self.step, dataset_root / LOCALIZER_DIR)
+        directory = dataset_root / LOCALIZER_DIR
+        save_localizer(self.step, directory)
+        if not self.context.discovery.pretrained_path:
+            record = training_record(self.context.discovery)
+            (directory / TRAINING_RECORD).write_text(json.dumps(record, indent=2))
 
 
 @register_selector("last_state")

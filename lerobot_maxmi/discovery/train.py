@@ -4,7 +4,7 @@ import logging
 from dataclasses import asdict, dataclass, field
 
 import torch
-from accelerate import Accelerator
+from accelerate import Accelerator, PartialState
 from torch import Tensor
 from tqdm import tqdm
 
@@ -140,12 +140,24 @@ def train_localizer(episodes: list[Tensor], cfg: DiscoveryConfig) -> KSLNet:
         optimizer.step()
         progress.set_postfix({k: f"{v.item():.3f}" for k, v in terms.items()})
     logging.info(
-        "trained KSL-Net on %d episodes resampled to %d steps (%d process(es))",
+        "trained KSL-Net on %d episodes resampled to %d steps (%d process(es), %d torch thread(s) each)",
         len(episodes),
         length,
         accelerator.num_processes,
+        torch.get_num_threads(),
     )
     return accelerator.unwrap_model(net).eval()
+
+
+def training_record(cfg: DiscoveryConfig) -> dict:
+    """What repeats a training run exactly. The process count sets the batches; the torch thread count
+    sets CPU float rounding, which training amplifies into different key frames (docs/RESULTS.md)."""
+    return {
+        "discovery": asdict(cfg),
+        "torch_version": torch.__version__,
+        "processes": PartialState(cpu=cpu_process_group()).num_processes,
+        "torch_threads": torch.get_num_threads(),
+    }
 
 
 def fit_localizer(episodes: list[Tensor], cfg: DiscoveryConfig) -> MaxmiDiscoveryStep:
