@@ -58,6 +58,15 @@ def test_a_variant_can_set_discoverys_k(monkeypatch, tmp_path):
     assert tools.flag("lerobot-maxmi-discover", "--discovery.num_concepts") == [profile_k, "10"]
 
 
+def test_awe_gets_the_kitchens_threshold_and_only_there(monkeypatch, tmp_path):
+    tools = FakeTools()
+    monkeypatch.setattr(pipeline, "run_tool", tools)
+    tasks = ["PickCube-v1", "FrankaKitchen-v1"]
+    run_table.run_table(run_table.TableConfig(tasks=tasks, variants=["awe", "uniform"], output_dir=tmp_path))
+    assert tools.flag("lerobot-maxmi-discover", "--selector") == ["awe", "uniform", "awe", "uniform"]
+    assert tools.flag("lerobot-maxmi-discover", "--awe.error_threshold") == ["0.5"]  # kitchen AWE only
+
+
 def test_cells_run_the_pipeline_per_variant_and_are_not_rerun(monkeypatch, tmp_path):
     tools = FakeTools()
     monkeypatch.setattr(pipeline, "run_tool", tools)
