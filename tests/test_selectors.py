@@ -58,6 +58,17 @@ def test_baseline_selectors_on_episodes(tmp_path):
         make_selector("clip", context)
 
 
+def test_awe_warns_when_noise_makes_it_keep_most_frames(tmp_path, caplog):
+    noisy = [torch.randn(40, 30, generator=torch.Generator().manual_seed(0))]
+    context = SelectionContext(tmp_path, [0], awe=AWEConfig(error_threshold=0.1))
+    make_selector("awe", context).select(noisy)
+    assert "Raise the threshold" in caplog.text
+    caplog.clear()
+    context.awe.error_threshold = 10.0  # every frame within reach of one segment
+    assert make_selector("awe", context).select(noisy) == [[39]]
+    assert "Raise the threshold" not in caplog.text
+
+
 def test_shared_concepts_merge_duplicates_dataset_wide():
     # Concepts 0 and 2 sit at the same place (keep the more confident 2); concept 3 is at the end,
     # which the appended final frame stands for.

@@ -6,6 +6,7 @@ last where the selector uses it), so the annotator writes all of them in the sam
 
 import abc
 import json
+import logging
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -128,7 +129,25 @@ class AWESelector(KeyFrameSelector):
         mean, std = frames.mean(0), frames.std(0).clamp_min(1e-6)
         # Distances in std units, divided by √D so the threshold is a per-dim RMS.
         scale = std * len(dims) ** 0.5
-        return [dp_waypoints((states[:, dims] - mean) / scale, awe.error_threshold) for states in episodes]
+        standardized = [(states[:, dims] - mean) / scale for states in episodes]
+        waypoints = [dp_waypoints(states, awe.error_threshold) for states in standardized]
+        warn_if_most_frames_kept(waypoints, episodes, awe.error_threshold)
+        return waypoints
+
+
+def warn_if_most_frames_kept(waypoints: list[list[int]], episodes: list[Tensor], threshold: float) -> None:
+    """Noisy states defeat AWE's reconstruction: nearly every frame becomes a key state."""
+    kept = sum(map(len, waypoints)) / len(waypoints)
+    length = sum(map(len, episodes)) / len(episodes)
+    if kept > length / 2:
+        logging.warning(
+            "AWE kept %.1f of %.1f frames per episode at --awe.error_threshold=%g: the states are too "
+            "noisy for it to skip frames. Raise the threshold (FrankaKitchen-v1's 30-d state keeps about "
+            "13 at 0.5) or reconstruct only smooth dims with --awe.dims",
+            kept,
+            length,
+            threshold,
+        )
 
 
 class StoredKeyFramesSelector(KeyFrameSelector):
