@@ -2,6 +2,7 @@
 
     .venv/bin/python benchmarks/mi_accuracy.py                      # full size (a few minutes)
     .venv/bin/python benchmarks/mi_accuracy.py --count=50 --sizes 100
+    .venv/bin/python benchmarks/mi_accuracy.py --infonet_weights=outputs/infonet/final  # retrained weights
 
 Test distributions are fresh random 2-D Gaussian mixtures (1-10 components; Monte-Carlo MI from
 exact densities) and bivariate Gaussians with rho ~ U(-0.95, 0.95) (closed-form MI).
@@ -30,9 +31,18 @@ def main() -> None:
     parser.add_argument("--mc_samples", type=int, default=100_000, help="Monte-Carlo samples per GMM")
     parser.add_argument("--seed", type=int, default=TEST_SEED)
     parser.add_argument("--json", help="also write the rows to this JSON file")
+    parser.add_argument(
+        "--infonet_weights", help="InfoNet directory or hub repo id to score instead of the shipped weights"
+    )
     args = parser.parse_args()
     rows = evaluate_estimators(
-        args.estimators, args.families, args.sizes, args.count, args.seed, args.mc_samples
+        args.estimators,
+        args.families,
+        args.sizes,
+        args.count,
+        args.seed,
+        args.mc_samples,
+        args.infonet_weights,
     )
     print(
         f"\n{args.count} distributions per row; torch threads: {torch.get_num_threads()}; "

@@ -224,3 +224,18 @@ def test_accuracy_rows_score_each_estimator_with_its_standard_error():
     assert f"| gaussian | 64 | gaussian | {first.mae:.4f} ± {first.mae_standard_error:.4f} |" in format_table(
         rows
     )
+
+
+def test_accuracy_rows_score_other_infonet_weights_when_given(tmp_path):
+    torch.manual_seed(0)
+    InfoNet(**vars(InfoNetConfig(dim=16, num_latents=4, num_layers=1, grid_size=8))).save_pretrained(tmp_path)
+
+    def maes(weights):
+        rows = evaluate_estimators(
+            ["infonet", "gaussian"], ["gaussian"], [64], count=8, seed=0, infonet_weights=weights
+        )
+        return [r.mae for r in rows]
+
+    (shipped_infonet, shipped_copula), (other_infonet, other_copula) = maes(None), maes(str(tmp_path))
+    assert other_infonet != shipped_infonet
+    assert other_copula == shipped_copula  # the other estimators keep their own settings

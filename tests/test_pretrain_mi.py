@@ -92,6 +92,15 @@ def test_regression_head_stage_trains_only_the_head(tmp_path):
             torch.testing.assert_close(tensor, backbone[key], rtol=0, atol=0, msg=key)
 
 
+def test_fine_tuning_all_starts_from_every_saved_tensor(tmp_path):
+    base = pretrain(tiny_config(tmp_path / "base", steps=2))
+    cfg = tiny_config(tmp_path / "fine_tune", steps=0)
+    cfg.init_from = str(base)
+    started = weights(pretrain(cfg))
+    for key, tensor in weights(base).items():
+        torch.testing.assert_close(started[key], tensor, rtol=0, atol=0, msg=key)
+
+
 def test_regression_head_stage_needs_init_from():
     with pytest.raises(ValueError, match="--init_from"):
         PretrainMIConfig(trainable="regression_head")

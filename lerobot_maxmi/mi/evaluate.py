@@ -97,9 +97,18 @@ def case_seeds(families: list[str], sizes: list[int], seed: int) -> dict[tuple[s
 
 
 def evaluate_estimators(
-    names: list[str], families: list[str], sizes: list[int], count: int, seed: int, mc_samples: int = 100_000
+    names: list[str],
+    families: list[str],
+    sizes: list[int],
+    count: int,
+    seed: int,
+    mc_samples: int = 100_000,
+    infonet_weights: str | None = None,
 ) -> list[Row]:
-    estimators = {name: load_estimator(name, device="cpu") for name in names}
+    """`infonet_weights` (a directory or hub repo id) replaces the InfoNet estimators' shipped weights."""
+    estimators = {
+        name: load_estimator(name, device="cpu", **weights_option(name, infonet_weights)) for name in names
+    }
     rows = []
     for (family, n), case_seed in tqdm(case_seeds(families, sizes, seed).items(), desc="MI accuracy"):
         sets = make_test_sets(family, count, n, case_seed, mc_samples)
@@ -118,6 +127,10 @@ def evaluate_estimators(
                 )
             )
     return rows
+
+
+def weights_option(name: str, infonet_weights: str | None) -> dict:
+    return {"pretrained": infonet_weights} if infonet_weights and name.startswith("infonet") else {}
 
 
 def format_table(rows: list[Row]) -> str:

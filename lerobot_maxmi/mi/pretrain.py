@@ -9,8 +9,9 @@ sees exactly the batches an uninterrupted one would.
     lerobot-maxmi-pretrain-mi --output_dir=outputs/infonet --steps=20000
     lerobot-maxmi-pretrain-mi --output_dir=outputs/infonet --steps=30000 --resume=true
 
-`--trainable=regression_head` with `--init_from=<InfoNet directory or repo id>` trains only the
-regression head on top of a frozen encoder and critic (which stay bit-identical).
+`--init_from=<InfoNet directory or repo id>` starts from saved weights. With
+`--trainable=regression_head` a new regression head trains on its frozen encoder and critic (which
+stay bit-identical); with `--trainable=all` the whole network, head included, is fine-tuned.
 """
 
 import json
@@ -62,8 +63,8 @@ class PretrainMIConfig:
     regression_weight: float = 1.0
     # "all", or "regression_head": only the regression head learns; needs init_from.
     trainable: str = "all"
-    # An InfoNet (directory or hub repo id) whose encoder and critic start the run; its regression
-    # head is not loaded.
+    # An InfoNet (directory or hub repo id) that starts the run: all of it for trainable="all", its
+    # encoder and critic for "regression_head" (whose head starts fresh).
     init_from: str | None = None
     seed: int = 0
     device: str = "auto"
@@ -122,13 +123,17 @@ def training_losses(model: InfoNet, batch: dict[str, torch.Tensor], regression_w
     }
 
 
-def load_encoder_and_critic(model: InfoNet, source: str) -> None:
-    """Copy every tensor but the regression head's from a saved InfoNet (local directory or hub repo id)."""
+def load_initial_weights(model: InfoNet, source: str, trainable: str) -> None:
+    """Copy a saved InfoNet's tensors (local directory or hub repo id); all but the head for a new head."""
     local = Path(source) / SAFETENSORS_SINGLE_FILE
     path = local if local.exists() else hf_hub_download(source, SAFETENSORS_SINGLE_FILE)
-    # "regression" also skips the head of files saved before it was rebuilt (`regression_out.*`).
-    state = {name: t for name, t in load_file(path).items() if not name.startswith("regression")}
-    expected = {name: t.shape for name, t in model.state_dict().items() if not name.startswith("regression")}
+
+    def kept(name: str) -> bool:
+        # "regression" also skips the head of files saved before it was rebuilt (`regression_out.*`).
+        return trainable == "all" or not name.startswith("regression")
+
+    state = {name: t for name, t in load_file(path).items() if kept(name)}
+    expected = {name: t.shape for name, t in model.state_dict().items() if kept(name)}
     if {name: t.shape for name, t in state.items()} != expected:
         raise ValueError(
             f"{source} holds an InfoNet of other sizes than --model.*; pass its config.json values"
@@ -177,7 +182,7 @@ def pretrain(cfg: PretrainMIConfig) -> Path:
     if resuming:
         load_model(model, checkpoint / SAFETENSORS_SINGLE_FILE, device=str(device))
     elif cfg.init_from:
-        load_encoder_and_critic(model, cfg.init_from)
+        load_initial_weights(model, cfg.init_from, cfg.trainable)
     parameters = select_trainable(model, cfg.trainable)
     optimizer = torch.optim.AdamW(parameters, lr=cfg.lr, weight_decay=1e-4)
     scheduler = torch.optim.lr_scheduler.LambdaLR(optimizer, warmup_cosine(cfg.warmup_steps, cfg.steps))
