@@ -11,7 +11,6 @@ writing the annotated copy. Peak RSS is the child's. Targets (issue 4): <= 10 mi
 """
 
 import argparse
-import os
 import resource
 import shlex
 import subprocess
@@ -21,6 +20,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+from run_table import machine  # benchmarks/ is this script's import root
 
 
 def write_dataset(root: Path, episodes: int, length: int, state_dim: int) -> None:
@@ -55,21 +55,24 @@ def main() -> None:
     with tempfile.TemporaryDirectory() as tmp:
         source, output = Path(tmp) / "source", Path(tmp) / "annotated"
         write_dataset(source, args.episodes, args.length, args.state_dim)
+        # The console script's own module, so this also runs where the package is importable but its
+        # scripts are not installed beside this interpreter (e.g. PYTHONPATH on a GPU machine).
+        cli = [sys.executable, "-m", "lerobot_maxmi.discovery.annotate"]
+        flags = [f"--discovery.steps={args.steps}", *shlex.split(args.extra)]
         command = [
-            str(Path(sys.executable).parent / "lerobot-maxmi-discover"),
+            *cli,
             "--dataset.repo_id=local/speed",
             f"--dataset.root={source}",
             "--output.repo_id=local/speed_maxmi",
             f"--output.root={output}",
-            f"--discovery.steps={args.steps}",
-            *shlex.split(args.extra),
+            *flags,
         ]
         start = time.perf_counter()
         subprocess.run(command, check=True)
         seconds = time.perf_counter() - start
     peak_gb = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss / 1024**2  # ru_maxrss is in KiB
 
-    print(f"\nlerobot-maxmi-discover, {os.cpu_count()} cores, flags: {' '.join(command[5:])}\n")
+    print(f"\nlerobot-maxmi-discover, {machine()}, flags: {' '.join(flags)}\n")
     print("| episodes x frames | state dim | training steps | wall time | peak RSS | targets |")
     print("|---|---:|---:|---:|---:|---|")
     print(
