@@ -23,20 +23,30 @@ import numpy as np
 from run_table import machine  # benchmarks/ is this script's import root
 
 
-def write_dataset(root: Path, episodes: int, length: int, state_dim: int) -> None:
+def write_dataset(root: Path, episodes: int, length: int, state_dim: int, key_states: int = 0) -> None:
+    """Random-walk states and random actions; with `key_states` > 0 also an `observation.key_states`
+    column of that many states per episode, shaped as `lerobot-maxmi-discover` writes it."""
     from lerobot.datasets.lerobot_dataset import LeRobotDataset
 
     features = {
         "observation.state": {"dtype": "float32", "shape": (state_dim,), "names": None},
         "action": {"dtype": "float32", "shape": (7,), "names": None},
     }
+    if key_states:
+        features["observation.key_states"] = {
+            "dtype": "float32",
+            "shape": (key_states * state_dim,),
+            "names": None,
+        }
     dataset = LeRobotDataset.create("local/speed", fps=20, features=features, root=root, use_videos=False)
     rng = np.random.default_rng(0)
     for _ in range(episodes):
         states = np.cumsum(rng.normal(size=(length, state_dim)), axis=0).astype(np.float32)
         actions = rng.normal(size=(length, 7)).astype(np.float32)
+        key_frames = np.linspace(0, length - 1, key_states).astype(int)
+        extra = {"observation.key_states": states[key_frames].reshape(-1)} if key_states else {}
         for state, action in zip(states, actions, strict=True):
-            dataset.add_frame({"observation.state": state, "action": action, "task": "synthetic"})
+            dataset.add_frame({"observation.state": state, "action": action, "task": "synthetic", **extra})
         dataset.save_episode()
     dataset.finalize()
 
