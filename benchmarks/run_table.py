@@ -105,7 +105,8 @@ class Profile:
 PROFILES = {
     # About 30 minutes of training per cell on 2 CPU cores (PickCube, with key states).
     "cpu": Profile(100, 1000, 4, 2500, 64, 10, 100, "cpu"),
-    # The paper's context length and batch size on a GPU.
+    # The paper's context length and batch size on a GPU. LeRobot 0.6.1's loader, not the GPU, bounds
+    # it: ~165 worker-hours to read its samples (docs/RESULTS.md, "CoTPC's data path through LeRobot").
     "gpu": Profile(500, 3000, 10, 50_000, 256, 60, 100, "cuda"),
 }
 
