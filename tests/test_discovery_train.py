@@ -7,7 +7,13 @@ import sys
 import pytest
 import torch
 
-from lerobot_maxmi.discovery.train import DiscoveryConfig, KSLNetArchitecture, fit_localizer, train_localizer
+from lerobot_maxmi.discovery.train import (
+    DiscoveryConfig,
+    KSLNetArchitecture,
+    collapse_warning,
+    fit_localizer,
+    train_localizer,
+)
 
 
 def tiny_config(**overrides):
@@ -44,6 +50,14 @@ def test_a_collapsed_objective_is_reported(caplog):
         step = fit_localizer(episodes, cfg)
     assert len(step.key_frames(episodes)[0]) == 2  # one concept + the final frame
     assert "the objective collapsed" in caplog.text
+
+
+def test_every_collapse_is_named_and_a_spread_is_not():
+    """Concepts merged into the final frame (seen on PegInsertionSide without the diversity term)
+    leave the last state's key states: that is a collapse too, not a silent success."""
+    assert "no concept is kept" in collapse_warning(0, 4)
+    assert "one key state is kept" in collapse_warning(1, 4)
+    assert collapse_warning(2, 4) is None and collapse_warning(1, 1) is None
 
 
 @pytest.mark.parametrize(

@@ -160,6 +160,22 @@ def training_record(cfg: DiscoveryConfig) -> dict:
     }
 
 
+def collapse_warning(kept: int, num_concepts: int) -> str | None:
+    """What to tell the user when NMS left at most one of several concepts, else None."""
+    if kept > 1 or num_concepts <= 1:
+        return None
+    where = (
+        "at the final frame, so no concept is kept and the key states are the last state's"
+        if kept == 0
+        else "within --discovery.nms_radius of one another, so one key state is kept"
+    )
+    return (
+        f"all {num_concepts} concepts sit {where}: the objective collapsed. Concepts collapse without "
+        "the diversity term (--discovery.diversity_weight=0) and under --discovery.objective=released; "
+        "a larger --discovery.diversity_weight spreads them."
+    )
+
+
 def fit_localizer(episodes: list[Tensor], cfg: DiscoveryConfig) -> MaxmiDiscoveryStep:
     """Train KSL-Net, keep the concepts that are distinct dataset-wide, and wrap both as a processor step.
 
@@ -174,12 +190,6 @@ def fit_localizer(episodes: list[Tensor], cfg: DiscoveryConfig) -> MaxmiDiscover
         fractions.tolist(), confidence.mean(dim=0).tolist(), cfg.nms_radius, cfg.append_final_frame
     )
     logging.info("kept %d of %d concepts dataset-wide: %s", len(concepts), cfg.num_concepts, concepts)
-    if len(concepts) == 1 < cfg.num_concepts:
-        logging.warning(
-            "all %d concepts sit within --discovery.nms_radius of one another, so one key state is kept: "
-            "the objective collapsed. Concepts collapse without the diversity term "
-            "(--discovery.diversity_weight=0) and under --discovery.objective=released; a larger "
-            "--discovery.diversity_weight spreads them.",
-            cfg.num_concepts,
-        )
+    if warning := collapse_warning(len(concepts), cfg.num_concepts):
+        logging.warning(warning)
     return MaxmiDiscoveryStep.from_net(net, concepts, cfg.append_final_frame, **asdict(cfg.model))
