@@ -57,6 +57,7 @@ def test_every_collapse_is_named_and_a_spread_is_not():
     leave the last state's key states: that is a collapse too, not a silent success."""
     assert "no concept is kept" in collapse_warning(0, 4)
     assert "one key state is kept" in collapse_warning(1, 4)
+    assert "--discovery.num_concepts" in collapse_warning(0, 1)  # K = 1 has no diversity term to fix it
     assert collapse_warning(2, 4) is None and collapse_warning(1, 1) is None
 
 

@@ -161,14 +161,16 @@ def training_record(cfg: DiscoveryConfig) -> dict:
 
 
 def collapse_warning(kept: int, num_concepts: int) -> str | None:
-    """What to tell the user when NMS left at most one of several concepts, else None."""
-    if kept > 1 or num_concepts <= 1:
+    """What to tell the user when NMS kept none of the concepts, or one of several, else None."""
+    if kept > 1 or kept == num_concepts:
         return None
-    where = (
-        "at the final frame, so no concept is kept and the key states are the last state's"
-        if kept == 0
-        else "within --discovery.nms_radius of one another, so one key state is kept"
-    )
+    if kept == 0:
+        where = "at the final frame, so no concept is kept and the key states are the last state's"
+    else:
+        where = "within --discovery.nms_radius of one another, so one key state is kept"
+    if num_concepts == 1:
+        # One concept has no diversity term to push it off the end; only more concepts can.
+        return f"the one concept sits {where}. Ask for more with --discovery.num_concepts."
     return (
         f"all {num_concepts} concepts sit {where}: the objective collapsed. Concepts collapse without "
         "the diversity term (--discovery.diversity_weight=0) and under --discovery.objective=released; "
