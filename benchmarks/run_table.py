@@ -10,8 +10,9 @@ lerobot-eval on seen initial configurations (the demos' own seeds) and unseen on
 configuration; a cell already there is skipped, so an interrupted run continues where it stopped.
 Runners for different tasks may share an output directory and run at the same time.
 A cell whose command fails is not stored. The tables (`<output_dir>/tables.md`: all tasks side by
-side in the paper's Table 1/2 layout, then every rate per task) are regenerated from the JSON after
-every cell, and on their own with `--run=false`.
+side in the paper's Table 1/2 layout; each variant's unseen headline minus that of `none` and of
+`last_state`, with a 95% confidence interval over seeds, where both have two or more; then every
+rate per task) are regenerated from the JSON after every cell, and on their own with `--run=false`.
 """
 
 import fcntl
@@ -24,6 +25,7 @@ from pathlib import Path
 
 import draccus
 import torch
+from scipy import stats
 
 from lerobot_maxmi.envs.configs import NUM_TASKS_COMPLETED
 from lerobot_maxmi.pipeline import (
@@ -38,6 +40,7 @@ from lerobot_maxmi.pipeline import (
 )
 
 UNSEEN_SEED = 1_000_000  # far above any demo seed
+BASELINES = ("none", "last_state")  # what the paper's claim says MaxMI beats
 MEAN_METRICS = {NUM_TASKS_COMPLETED}  # means over episodes; every other metric is a % of episodes
 
 
@@ -251,19 +254,59 @@ def table(header: list[str], rows: list[str]) -> str:
     return "\n".join([row(header), "|" + "---|" * len(header), *rows])
 
 
+def headline_metrics(by_task: dict[str, dict[str, list[dict]]]) -> dict[str, str]:
+    return {task: headline(next(iter(by_variant.values()))) for task, by_variant in by_task.items()}
+
+
+def task_header(metrics: dict[str, str]) -> list[str]:
+    return ["variant", *(f"{task} {metric} {unit(metric)}" for task, metric in metrics.items())]
+
+
+def all_variants(by_task: dict[str, dict[str, list[dict]]]) -> list[str]:
+    return sorted({variant for by_variant in by_task.values() for variant in by_variant})
+
+
 def summary_table(by_task: dict[str, dict[str, list[dict]]]) -> str:
     """The paper's Table 1/2 layout: a row per variant, a column per task, its headline metric."""
-    metrics = {task: headline(next(iter(by_variant.values()))) for task, by_variant in by_task.items()}
-    header = ["variant", *(f"{task} {metric} {unit(metric)}" for task, metric in metrics.items())]
+    metrics = headline_metrics(by_task)
     rows = []
-    for variant in sorted({variant for by_variant in by_task.values() for variant in by_variant}):
+    for variant in all_variants(by_task):
         values = []
         for task, metric in metrics.items():
             cells = by_task[task].get(variant)
             seeds = f" ({len(cells)} seeds)" if cells and len(cells) > 1 else ""
             values.append(seen_unseen(cells, metric) + seeds if cells else "—")
         rows.append(row([variant, *values]))
-    return table(header, rows)
+    return table(task_header(metrics), rows)
+
+
+def unseen_difference(cells: list[dict], baseline_cells: list[dict], metric: str) -> str:
+    """Unseen `metric`, cells minus baseline: mean difference [95% CI], Welch's p; "—" under 2 seeds a side.
+
+    Seeds are the unit: each cell is one training run, so the spread between runs is the noise.
+    """
+    values, baseline = ([cell["unseen"][metric] for cell in group] for group in (cells, baseline_cells))
+    if min(len(values), len(baseline)) < 2:
+        return "—"
+    test = stats.ttest_ind(values, baseline, equal_var=False)
+    low, high = test.confidence_interval(0.95)
+    digits = 2 if metric in MEAN_METRICS else 1
+    difference = statistics.mean(values) - statistics.mean(baseline)
+    return f"{difference:+.{digits}f} [{low:+.{digits}f}, {high:+.{digits}f}], p = {test.pvalue:.2f}"
+
+
+def difference_table(by_task: dict[str, dict[str, list[dict]]], baseline: str) -> str:
+    """A row per other variant, a column per task: its unseen headline metric minus the baseline's."""
+    metrics = headline_metrics(by_task)
+    rows = []
+    for variant in all_variants(by_task):
+        if variant != baseline:
+            differences = (
+                unseen_difference(by_task[task].get(variant, []), by_task[task].get(baseline, []), metric)
+                for task, metric in metrics.items()
+            )
+            rows.append(row([variant, *differences]))
+    return table(task_header(metrics), rows)
 
 
 def task_table(by_variant: dict[str, list[dict]]) -> str:
@@ -275,7 +318,8 @@ def task_table(by_variant: dict[str, list[dict]]) -> str:
 
 
 def markdown_tables(results: dict) -> str:
-    """Per profile (the cells' sizes): all tasks side by side, then one table per task."""
+    """Per profile (the cells' sizes): all tasks side by side, the differences from the baselines, then
+    one table per task."""
     groups: dict[str, dict[str, dict[str, list[dict]]]] = {}
     for cell in results.values():
         config = cell["config"]
@@ -288,6 +332,12 @@ def markdown_tables(results: dict) -> str:
     for sizes, by_task in sorted(groups.items()):
         by_task = dict(sorted(by_task.items()))
         sections.append(f"## {sizes}\n\n### All tasks, seen / unseen\n\n{summary_table(by_task)}")
+        sections += [
+            f"### Unseen, minus {baseline}: mean difference [95% CI], Welch's t-test\n\n"
+            + difference_table(by_task, baseline)
+            for baseline in BASELINES
+            if any(baseline in by_variant for by_variant in by_task.values())
+        ]
         sections += [f"### {task}\n\n{task_table(by_variant)}" for task, by_variant in by_task.items()]
     return "\n\n".join(sections)
 

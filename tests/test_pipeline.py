@@ -168,3 +168,22 @@ def test_all_tasks_side_by_side_rank_each_task_by_its_headline_metric():
     assert "| variant | FrankaKitchen-v1 num_tasks_completed (mean) | PickCube-v1 success % |" in tables
     assert "| maxmi | — | 95 ± 1 / 39 ± 3 (2 seeds) |" in tables
     assert "| none | 0.19 / 0.13 | 99 / 38 |" in tables
+
+
+def test_differences_from_a_baseline_carry_a_welch_interval_over_seeds():
+    def cell(variant, seed, unseen):
+        config = {"task": "PickCube-v1", "variant": variant, "seed": seed}
+        return {"config": config, "seen": {"success": 90.0}, "unseen": {"success": unseen}}
+
+    maxmi, none = [37.0, 41.0, 32.0, 56.0, 44.0], [38.0, 43.0, 39.0, 28.0, 48.0]
+    cells = [cell("maxmi", i, v) for i, v in enumerate(maxmi)] + [
+        cell("none", i, v) for i, v in enumerate(none)
+    ]
+    cells.append(cell("uniform", 0, 59.0))
+    tables = run_table.markdown_tables({str(i): c for i, c in enumerate(cells)})
+
+    # By hand: difference 2.8, s.e. sqrt(81.5/5 + 54.7/5) = 5.22, 7.7 degrees of freedom, t(0.975) = 2.32.
+    assert "### Unseen, minus none: mean difference [95% CI], Welch's t-test" in tables
+    assert "| maxmi | +2.8 [-9.3, +14.9], p = 0.61 |" in tables
+    assert "| uniform | — |" in tables  # one seed: no spread to test against
+    assert "minus last_state" not in tables  # no such cells
