@@ -50,12 +50,14 @@ def table_config(tmp_path, variants):
     return run_table.TableConfig(variants=variants, seeds=[0, 1], output_dir=tmp_path)
 
 
-def test_a_variant_can_set_discoverys_k(monkeypatch, tmp_path):
+def test_variants_can_set_discoverys_k_and_mi_mode(monkeypatch, tmp_path):
     tools = FakeTools()
     monkeypatch.setattr(pipeline, "run_tool", tools)
-    run_table.run_table(run_table.TableConfig(variants=["maxmi", "maxmi_k10"], output_dir=tmp_path))
+    variants = ["maxmi", "maxmi_k10", "maxmi_k10_sliced"]
+    run_table.run_table(run_table.TableConfig(variants=variants, output_dir=tmp_path))
     profile_k = str(run_table.PROFILES["cpu"].num_concepts)
-    assert tools.flag("lerobot-maxmi-discover", "--discovery.num_concepts") == [profile_k, "10"]
+    assert tools.flag("lerobot-maxmi-discover", "--discovery.num_concepts") == [profile_k, "10", "10"]
+    assert tools.flag("lerobot-maxmi-discover", "--discovery.state_mi_mode") == ["sliced"]
 
 
 def test_awe_gets_the_kitchens_threshold_and_only_there(monkeypatch, tmp_path):
