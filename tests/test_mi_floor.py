@@ -2,7 +2,8 @@
 
 import torch
 
-from lerobot_maxmi.mi.ground_truth import bivariate_gaussian_mi, sample_bivariate_gaussian
+from lerobot_maxmi.mi.evaluate import draw_test_mixtures, make_test_sets
+from lerobot_maxmi.mi.ground_truth import GaussianMixtures, bivariate_gaussian_mi, sample_bivariate_gaussian
 from tests.conftest import load_benchmark
 
 mi_floor = load_benchmark("mi_floor")
@@ -28,3 +29,29 @@ def test_the_posterior_median_beats_the_plug_in_and_shrinks_with_n():
         plug_in[n] = (bivariate_gaussian_mi(abs_r.clamp(max=1 - 1e-12)) - truth).abs().mean()
     assert posterior_median[30] < plug_in[30]  # the plug-in's upward bias shows at small N
     assert posterior_median[300] < posterior_median[30] / 2
+
+
+def test_the_known_density_averages_read_the_benchmarks_own_test_sets():
+    mixtures, points, _ = draw_test_mixtures(count=4, num_samples=50, seed=7, mc_samples=1000)
+    sets = make_test_sets("gmm", count=4, num_samples=50, seed=7, mc_samples=1000)
+    assert torch.equal(points[..., 0].float(), sets.x) and torch.equal(points[..., 1].float(), sets.y)
+    for family in ("gaussian", "gmm"):
+        errors = {
+            n: mi_floor.known_density_average_errors(family, n, count=64, seed=7).abs().mean()
+            for n in (50, 2000)
+        }
+        assert errors[2000] < errors[50] / 3  # unbiased, with noise shrinking like 1/sqrt(N)
+
+
+def test_the_gaussian_pointwise_mi_matches_a_one_component_mixture():
+    rho = torch.tensor([-0.8, 0.0, 0.5], dtype=torch.float64)
+    points = sample_bivariate_gaussian(rho, 16)
+    covariance = torch.stack(
+        [torch.stack([torch.ones_like(rho), rho], -1), torch.stack([rho, torch.ones_like(rho)], -1)], -2
+    )
+    one_component = GaussianMixtures(
+        torch.ones(3, 1, dtype=rho.dtype), torch.zeros(3, 1, 2, dtype=rho.dtype), covariance.unsqueeze(1)
+    )
+    assert torch.allclose(
+        mi_floor.bivariate_gaussian_pointwise_mi(rho, points), one_component.pointwise_mi(points)
+    )

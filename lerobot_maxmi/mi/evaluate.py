@@ -9,6 +9,7 @@ from tqdm import tqdm
 
 from lerobot_maxmi.mi.estimators import MIEstimator, load_estimator
 from lerobot_maxmi.mi.ground_truth import (
+    GaussianMixtures,
     bivariate_gaussian_mi,
     random_gaussian_mixtures,
     sample_bivariate_gaussian,
@@ -45,20 +46,34 @@ def make_test_sets(
     family: str, count: int, num_samples: int, seed: int, mc_samples: int = 100_000, max_components: int = 10
 ) -> TestSets:
     """Fresh test distributions: GMMs with 1..max_components components, or Gaussians with |ρ| ≤ 0.95."""
-    generator = torch.Generator().manual_seed(seed)
     if family == "gaussian":
-        rho = (torch.rand(count, generator=generator, dtype=torch.float64) * 2 - 1) * MAX_ABS_RHO
-        points, mi = sample_bivariate_gaussian(rho, num_samples, generator), bivariate_gaussian_mi(rho)
+        _, points, mi = draw_test_gaussians(count, num_samples, seed)
     elif family == "gmm":
-        mixtures = random_gaussian_mixtures(count, max_components, generator=generator)
-        points = mixtures.sample(num_samples, generator)
-        mi = torch.cat([chunk_mi(mixtures, i, mc_samples, generator) for i in range(0, count, 16)])
+        _, points, mi = draw_test_mixtures(count, num_samples, seed, mc_samples, max_components)
     else:
         raise ValueError(f"unknown test family {family!r}; choose one of {', '.join(FAMILIES)}")
     return TestSets(family, points[..., 0].float(), points[..., 1].float(), mi.float())
 
 
-def chunk_mi(mixtures, start: int, mc_samples: int, generator: torch.Generator) -> Tensor:
+def draw_test_gaussians(count: int, num_samples: int, seed: int) -> tuple[Tensor, Tensor, Tensor]:
+    """The "gaussian" family's correlations ρ, (B, N, 2) samples and MI, as `make_test_sets` draws them."""
+    generator = torch.Generator().manual_seed(seed)
+    rho = (torch.rand(count, generator=generator, dtype=torch.float64) * 2 - 1) * MAX_ABS_RHO
+    return rho, sample_bivariate_gaussian(rho, num_samples, generator), bivariate_gaussian_mi(rho)
+
+
+def draw_test_mixtures(
+    count: int, num_samples: int, seed: int, mc_samples: int = 100_000, max_components: int = 10
+) -> tuple[GaussianMixtures, Tensor, Tensor]:
+    """The "gmm" family's mixtures, (B, N, 2) samples and Monte-Carlo MI, as `make_test_sets` draws them."""
+    generator = torch.Generator().manual_seed(seed)
+    mixtures = random_gaussian_mixtures(count, max_components, generator=generator)
+    points = mixtures.sample(num_samples, generator)
+    mi = torch.cat([chunk_mi(mixtures, i, mc_samples, generator) for i in range(0, count, 16)])
+    return mixtures, points, mi
+
+
+def chunk_mi(mixtures: GaussianMixtures, start: int, mc_samples: int, generator: torch.Generator) -> Tensor:
     """Monte-Carlo MI of 16 mixtures at a time, to bound memory."""
     chunk = type(mixtures)(
         *(t[start : start + 16] for t in (mixtures.weights, mixtures.means, mixtures.covariances))
