@@ -15,7 +15,7 @@ from lerobot_maxmi.mi.ground_truth import (
     sample_bivariate_gaussian,
 )
 from lerobot_maxmi.mi.infonet import InfoNetConfig
-from lerobot_maxmi.mi.normalize import binned_copula_mi, hard_rank, rank_normalize
+from lerobot_maxmi.mi.normalize import binned_copula_mi, hard_rank, knn_copula_mi, rank_normalize
 
 DIFFERENTIABLE = ["infonet", "infonet_regression", "gaussian"]
 
@@ -125,6 +125,19 @@ def test_binned_copula_mi_is_zero_when_independent_and_log_bins_when_identical(g
     torch.testing.assert_close(binned_copula_mi(same, same, bins), torch.tensor([expected]))
 
 
+def test_knn_copula_mi_orders_dependence_and_stays_finite_on_ties(generator):
+    a = torch.randn(3, 1000, generator=generator)
+    rho = torch.tensor([[0.0], [0.5], [0.9]])
+    b = rho * a + (1 - rho.square()).sqrt() * torch.randn(3, 1000, generator=generator)
+    mi = knn_copula_mi(hard_rank(a), hard_rank(b), neighbors=(3, 10))
+    truth = bivariate_gaussian_mi(rho)
+    assert (mi - truth).abs().max() < 0.1 and (mi[1:] > mi[:-1] + 0.05).all()
+    x = torch.tensor([[1.0, 1.0, 2.0, 2.0, 3.0, 3.0]], requires_grad=True)  # ties, fewer points than k
+    tied = knn_copula_mi(rank_normalize(x), rank_normalize(x), neighbors=(1, 10))
+    tied.sum().backward()
+    assert torch.isfinite(tied).all() and torch.isfinite(x.grad).all()
+
+
 def test_monte_carlo_mi_matches_closed_form_for_one_component(generator):
     mixtures = random_gaussian_mixtures(8, max_components=1, generator=generator)
     cov = mixtures.covariances[:, 0]
@@ -172,12 +185,16 @@ def test_infonet_save_and_load_round_trip(tmp_path, generator):
     assert (tmp_path / "infonet" / "model.safetensors").exists()
 
 
-def test_infonet_saved_before_the_binned_statistics_still_loads(tmp_path, generator):
-    """Weights whose config.json predates `histogram_bins` have a head that reads three statistics."""
-    sizes = {**vars(InfoNetConfig(dim=16, num_latents=4, num_layers=1, grid_size=8)), "histogram_bins": ()}
+def test_infonet_saved_before_the_binned_and_knn_statistics_still_loads(tmp_path, generator):
+    """Weights saved before `histogram_bins` and `knn_neighbors` existed: a head reading three statistics."""
+    sizes = {
+        **vars(InfoNetConfig(dim=16, num_latents=4, num_layers=1, grid_size=8)),
+        "histogram_bins": (),
+        "knn_neighbors": (),
+    }
     InfoNet(**sizes).save_pretrained(tmp_path / "old")
     config = json.loads((tmp_path / "old" / "config.json").read_text())
-    del config["histogram_bins"]
+    del config["histogram_bins"], config["knn_neighbors"]
     (tmp_path / "old" / "config.json").write_text(json.dumps(config))
     x, y = correlated_sets([0.5], 64, generator)
     assert torch.isfinite(load_estimator("infonet_regression", pretrained=str(tmp_path / "old"))(x, y)).all()

@@ -8,8 +8,8 @@ encoder (latents cross-attend to the pairs, then self-attend) and has two heads:
   exactly uniform, so the product-of-marginals term is the mean of exp θ over the grid: no
   shuffling, no permutation noise. This is the InfoNet design.
 * ``regression``: MI read directly from the pooled latents and statistics of the set (the critic's
-  DV estimate, the Gaussian-copula MI, log N and binned plug-in MIs), trained to Monte-Carlo
-  ground truth.
+  DV estimate, the Gaussian-copula MI, log N, binned plug-in MIs and k-nearest-neighbour MIs),
+  trained to Monte-Carlo ground truth.
 """
 
 import math
@@ -20,7 +20,7 @@ import torch.nn.functional as F  # noqa: N812
 from huggingface_hub import PyTorchModelHubMixin
 from torch import Tensor, nn
 
-from lerobot_maxmi.mi.normalize import binned_copula_mi, gaussian_copula_mi
+from lerobot_maxmi.mi.normalize import binned_copula_mi, gaussian_copula_mi, knn_copula_mi
 
 HEADS = ("critic", "regression")
 # Log set sizes are centred on the middle of the pretraining range (64 to 1024 pairs).
@@ -42,6 +42,9 @@ class InfoNetConfig:
     # Grids of the plug-in MIs the regression head reads: coarse ones are steady at N = 100, fine
     # ones resolve mixtures' structure at N = 1000.
     histogram_bins: tuple[int, ...] = (3, 4, 6, 8, 12, 16)
+    # Neighbour counts k of the Kozachenko–Leonenko MIs the regression head reads: local detail of
+    # the set that the pooled latents average away, and differentiable in the samples.
+    knn_neighbors: tuple[int, ...] = (1, 3, 10)
 
 
 def fourier_features(points: Tensor, num_frequencies: int) -> Tensor:
@@ -128,10 +131,12 @@ class InfoNet(nn.Module, PyTorchModelHubMixin, library_name="lerobot_maxmi", tag
         num_frequencies: int,
         regression_width: int,
         histogram_bins: tuple[int, ...] = (),  # () for weights saved before the head read plug-in MIs
+        knn_neighbors: tuple[int, ...] = (),  # () for weights saved before the head read k-NN MIs
     ):
         super().__init__()
         self.grid_size = grid_size
         self.histogram_bins = tuple(histogram_bins)
+        self.knn_neighbors = tuple(knn_neighbors)
         self.num_frequencies = num_frequencies
         in_features = 2 + 4 * num_frequencies
 
@@ -155,8 +160,9 @@ class InfoNet(nn.Module, PyTorchModelHubMixin, library_name="lerobot_maxmi", tag
         self.norm_axis = nn.LayerNorm(dim)
         self.norm_latents = nn.LayerNorm(dim)
         self.critic_out = nn.Sequential(nn.LayerNorm(dim), nn.Linear(dim, critic_rank + 1))
-        # Statistics: DV estimate, Gaussian-copula MI, log N, one plug-in MI per grid.
-        self.regression_head = RegressionHead(dim, regression_width, 3 + len(self.histogram_bins))
+        # Statistics: DV estimate, Gaussian-copula MI, log N, one plug-in MI per grid, one k-NN MI per k.
+        num_statistics = 3 + len(self.histogram_bins) + len(self.knn_neighbors)
+        self.regression_head = RegressionHead(dim, regression_width, num_statistics)
         centres = ((torch.arange(grid_size) + 0.5) / grid_size).unsqueeze(-1)
         self.register_buffer("grid_centres", centres, persistent=False)
 
@@ -188,13 +194,15 @@ class InfoNet(nn.Module, PyTorchModelHubMixin, library_name="lerobot_maxmi", tag
 
         Attention pooling averages over the pairs, so the latents alone do not tell 100 pairs from
         1,000 and cannot correct small-sample bias; log N, the critic's DV estimate and the Gaussian-copula
-        MI give the head that context. The plug-in MIs on fine grids carry what 16 latents lose of a
-        large set's detail.
+        MI give the head that context. The plug-in MIs on fine grids and the k-NN MIs carry what 16
+        latents lose of a large set's detail.
         """
         log_set_size = torch.full_like(u[:, 0], math.log(u.shape[1]) - LOG_SET_SIZE_CENTRE)
         binned = [binned_copula_mi(u, v, bins) for bins in self.histogram_bins]
         statistics = [donsker_varadhan(table, u, v), gaussian_copula_mi(u, v), log_set_size, *binned]
         statistics = torch.stack(statistics, -1)
+        if self.knn_neighbors:
+            statistics = torch.cat([statistics, knn_copula_mi(u, v, self.knn_neighbors)], -1)
         return self.regression_head(latents, statistics)
 
     def forward(self, u: Tensor, v: Tensor, head: str = "critic") -> Tensor:
