@@ -15,7 +15,13 @@ from lerobot_maxmi.mi.ground_truth import (
     sample_bivariate_gaussian,
 )
 from lerobot_maxmi.mi.infonet import InfoNetConfig
-from lerobot_maxmi.mi.normalize import binned_copula_mi, hard_rank, knn_copula_mi, rank_normalize
+from lerobot_maxmi.mi.normalize import (
+    binned_copula_mi,
+    hard_rank,
+    knn_copula_mi,
+    kth_neighbor_squared_distances,
+    rank_normalize,
+)
 
 DIFFERENTIABLE = ["infonet", "infonet_regression", "gaussian"]
 
@@ -136,6 +142,21 @@ def test_knn_copula_mi_orders_dependence_and_stays_finite_on_ties(generator):
     tied = knn_copula_mi(rank_normalize(x), rank_normalize(x), neighbors=(1, 10))
     tied.sum().backward()
     assert torch.isfinite(tied).all() and torch.isfinite(x.grad).all()
+
+
+def test_windowed_neighbour_search_matches_all_pairs(generator):
+    """Large sets search a window around each point and fall back to the whole set in sparse regions."""
+    dense = 0.1 * torch.rand(2, 560, 2, generator=generator)
+    sparse = torch.rand(2, 40, 2, generator=generator)  # far from the dense points: the fallback's case
+    points = torch.cat([dense, sparse], dim=1)
+    points[:, :20] = points[:, 20:40]  # coincident points
+    neighbors = (1, 3, 10)
+    found = kth_neighbor_squared_distances(points, neighbors)
+    distances = torch.cdist(points, points, compute_mode="donot_use_mm_for_euclid_dist")
+    distances = distances + torch.diag_embed(torch.full_like(points[..., 0], float("inf")))
+    expected = distances.sort(dim=-1).values[..., [k - 1 for k in neighbors]].square()
+    # found comes back sorted by the first coordinate: compare each k's values as sets.
+    torch.testing.assert_close(found.sort(dim=1).values, expected.sort(dim=1).values, atol=1e-6, rtol=0)
 
 
 def test_monte_carlo_mi_matches_closed_form_for_one_component(generator):

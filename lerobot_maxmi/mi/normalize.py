@@ -9,6 +9,7 @@ the gradient of a sigmoid soft-rank, which lets MI gradients reach the raw sampl
 import math
 
 import torch
+import torch.nn.functional as F  # noqa: N812
 from torch import Tensor
 
 MIN_SAMPLES = 4
@@ -102,20 +103,74 @@ def knn_copula_mi(u: Tensor, v: Tensor, neighbors: tuple[int, ...]) -> Tensor:
     estimate reads it from each point's distance ε to its k-th nearest neighbour:
     H = ψ(N) − ψ(k) + log π + (2 / N) Σ log ε. Differentiable in the samples through ε; biased
     low near the unit square's edges, where neighbourhoods are cut off (the regression head
-    learns the correction). Pairwise distances are computed for a few sets at a time.
+    learns the correction).
     """
     n = u.shape[1]
     neighbors = tuple(min(k, n - 1) for k in neighbors)  # a set of N points has N − 1 neighbours
-    points = torch.stack([u, v], dim=-1)
-    sets_per_chunk = max(1, 2**24 // (n * n))
-    kth_distances = []
-    for chunk in points.split(sets_per_chunk):
-        distances = torch.cdist(chunk, chunk)
-        distances = distances + torch.diag_embed(torch.full_like(distances[:, 0], float("inf")))
-        nearest = distances.topk(max(neighbors), dim=-1, largest=False).values
-        kth_distances.append(nearest[..., [k - 1 for k in neighbors]])
+    squared = kth_neighbor_squared_distances(torch.stack([u, v], dim=-1), neighbors)
     # Tied ranks put points on top of each other; half the rank spacing keeps log ε finite there.
-    log_distance = torch.cat(kth_distances).clamp_min(0.5 / n).log().mean(dim=1)  # (B, len(neighbors))
+    log_distance = 0.5 * squared.clamp_min((0.5 / n) ** 2).log().mean(dim=1)  # (B, len(neighbors))
     k = torch.tensor(neighbors, dtype=u.dtype, device=u.device)
     entropy = torch.special.digamma(torch.tensor(float(n))) - torch.special.digamma(k) + math.log(math.pi)
     return -(entropy + 2 * log_distance)
+
+
+FAR = 1e3  # a coordinate no copula sample has: padding that is never anyone's neighbour
+CHUNK = 2**22  # distances held at once
+
+
+def kth_neighbor_squared_distances(points: Tensor, neighbors: tuple[int, ...]) -> Tensor:
+    """(B, N, len(neighbors)) squared distances from each of (B, N, 2) points to its k-th nearest other point.
+
+    Exact, without all N² distances of a large set: sorted by the first coordinate, each point
+    searches the `half` points on either side. Anything beyond lies at least the first-coordinate
+    gap to the window's edge away, so a point whose k-th distance is within that gap is done; the
+    few that are not (sparse regions) search the whole set. The window is 1.5 times the radius
+    that holds k neighbours at uniform density: few points then need the whole set.
+    Points come back sorted; callers average over them.
+    """
+    n = points.shape[1]
+    half = math.ceil(1.5 * math.sqrt(max(neighbors) * n / math.pi))
+    points = points.gather(1, points[..., 0].argsort(dim=1).unsqueeze(-1).expand(-1, -1, 2))
+    if 4 * half + 1 >= n:
+        itself = torch.arange(n, device=points.device)
+        chunks = points.split(max(1, CHUNK // (n * n)))
+        return torch.cat(
+            [smallest(squared_distances(p.unsqueeze(2), p.unsqueeze(1)), itself, neighbors) for p in chunks]
+        )
+    result = torch.cat(
+        [windowed(p, half, neighbors) for p in points.split(max(1, CHUNK // (n * (2 * half + 1))))]
+    )
+    with torch.no_grad():
+        first = points[..., 0]
+        edge = torch.full_like(first[:, : half + 1], FAR)
+        # beyond[:, i] and beyond[:, i + 2·half + 2] are the first points outside point i's window.
+        beyond = torch.cat([-edge, first, edge], dim=1)
+        gap = torch.minimum(beyond[:, 2 * half + 2 :] - first, first - beyond[:, :n])
+        sets, rows = (result.amax(dim=-1) > gap.square()).nonzero(as_tuple=True)
+    for chunk in torch.arange(len(sets), device=points.device).split(max(1, CHUNK // n)):
+        s, r = sets[chunk], rows[chunk]
+        whole_set = smallest(squared_distances(points[s, r].unsqueeze(1), points[s]), r, neighbors)
+        result = result.index_put((s, r), whole_set)
+    return result
+
+
+def windowed(points: Tensor, half: int, neighbors: tuple[int, ...]) -> Tensor:
+    """`smallest` among the `half` neighbours on either side of each of (B, N, 2) points sorted by u."""
+    squared = 0  # (B, N, 2·half + 1), each point itself in the middle
+    for coordinate in points.unbind(dim=-1):
+        window = F.pad(coordinate, (half, half), value=FAR).unfold(1, 2 * half + 1, 1)
+        squared = squared + (window - coordinate.unsqueeze(-1)).square()
+    return smallest(squared, torch.tensor(half, device=points.device), neighbors)
+
+
+def squared_distances(a: Tensor, b: Tensor) -> Tensor:
+    """Squared distances between broadcastable (..., 2) points, from differences (no cancellation near 0)."""
+    return sum((x - y).square() for x, y in zip(a.unbind(dim=-1), b.unbind(dim=-1), strict=True))
+
+
+def smallest(squared: Tensor, itself: Tensor, neighbors: tuple[int, ...]) -> Tensor:
+    """The k-th smallest entry of each row of `squared` for each k, column `itself` (the point) left out."""
+    mask = F.one_hot(itself, squared.shape[-1]).to(squared.dtype) * FAR**2
+    nearest = (squared + mask).topk(max(neighbors), dim=-1, largest=False).values
+    return nearest[..., [k - 1 for k in neighbors]]
