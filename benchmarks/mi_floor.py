@@ -38,7 +38,7 @@ from lerobot_maxmi.mi.evaluate import (
     mae_and_standard_error,
     make_test_sets,
 )
-from lerobot_maxmi.mi.ground_truth import bivariate_gaussian_mi
+from lerobot_maxmi.mi.ground_truth import bivariate_gaussian_mi, bivariate_gaussians
 
 
 def sample_correlations(rho: Tensor, num_samples: int, draws: int) -> Tensor:
@@ -91,20 +91,14 @@ class PosteriorMedian:
         return self.per_bin[torch.bucketize(abs_r, self.edges)]
 
 
-def bivariate_gaussian_pointwise_mi(rho: Tensor, points: Tensor) -> Tensor:
-    """log p(x, y) − log p(x) − log p(y) of standard bivariate Gaussians, ρ (B,), at (B, S, 2) points."""
-    r, x, y = rho.unsqueeze(1), points[..., 0], points[..., 1]
-    quadratic = (r.square() * (x.square() + y.square()) - 2 * r * x * y) / (2 * (1 - r.square()))
-    return bivariate_gaussian_mi(r) - quadratic
-
-
 def known_density_average_errors(family: str, num_samples: int, count: int, seed: int) -> Tensor:
     """Per test set: its N points' mean pointwise MI under the exact density, minus the true MI."""
     if family == "gaussian":
         rho, points, mi = draw_test_gaussians(count, num_samples, seed)
-        return bivariate_gaussian_pointwise_mi(rho, points).mean(dim=1) - mi
-    mixtures, points, mi = draw_test_mixtures(count, num_samples, seed)
-    return mixtures.pointwise_mi(points).mean(dim=1) - mi
+        densities = bivariate_gaussians(rho)
+    else:
+        densities, points, mi = draw_test_mixtures(count, num_samples, seed)
+    return densities.pointwise_mi(points).mean(dim=1) - mi
 
 
 def mean_and_error(errors: Tensor) -> str:

@@ -3,7 +3,11 @@
 import torch
 
 from lerobot_maxmi.mi.evaluate import draw_test_mixtures, make_test_sets
-from lerobot_maxmi.mi.ground_truth import GaussianMixtures, bivariate_gaussian_mi, sample_bivariate_gaussian
+from lerobot_maxmi.mi.ground_truth import (
+    bivariate_gaussian_mi,
+    bivariate_gaussians,
+    sample_bivariate_gaussian,
+)
 from tests.conftest import load_benchmark
 
 mi_floor = load_benchmark("mi_floor")
@@ -43,15 +47,7 @@ def test_the_known_density_averages_read_the_benchmarks_own_test_sets():
         assert errors[2000] < errors[50] / 3  # unbiased, with noise shrinking like 1/sqrt(N)
 
 
-def test_the_gaussian_pointwise_mi_matches_a_one_component_mixture():
+def test_bivariate_gaussians_as_mixtures_have_the_closed_form_mi():
     rho = torch.tensor([-0.8, 0.0, 0.5], dtype=torch.float64)
-    points = sample_bivariate_gaussian(rho, 16)
-    covariance = torch.stack(
-        [torch.stack([torch.ones_like(rho), rho], -1), torch.stack([rho, torch.ones_like(rho)], -1)], -2
-    )
-    one_component = GaussianMixtures(
-        torch.ones(3, 1, dtype=rho.dtype), torch.zeros(3, 1, 2, dtype=rho.dtype), covariance.unsqueeze(1)
-    )
-    assert torch.allclose(
-        mi_floor.bivariate_gaussian_pointwise_mi(rho, points), one_component.pointwise_mi(points)
-    )
+    mi = bivariate_gaussians(rho).monte_carlo_mi(50_000, torch.Generator().manual_seed(0))
+    torch.testing.assert_close(mi, bivariate_gaussian_mi(rho), atol=0.01, rtol=0)

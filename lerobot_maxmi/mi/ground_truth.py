@@ -88,6 +88,15 @@ def bivariate_gaussian_mi(rho: Tensor) -> Tensor:
     return -0.5 * torch.log1p(-rho.square())
 
 
+def bivariate_gaussians(rho: Tensor) -> GaussianMixtures:
+    """Standard bivariate Gaussians with correlations rho (B,) as one-component mixtures (densities)."""
+    ones = torch.ones_like(rho)
+    covariances = torch.stack([torch.stack([ones, rho], -1), torch.stack([rho, ones], -1)], -2)
+    return GaussianMixtures(
+        ones.unsqueeze(1), torch.zeros(len(rho), 1, 2, dtype=rho.dtype), covariances.unsqueeze(1)
+    )
+
+
 def sample_bivariate_gaussian(
     rho: Tensor, num_samples: int, generator: torch.Generator | None = None
 ) -> Tensor:
