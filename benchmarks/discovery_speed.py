@@ -23,11 +23,21 @@ import numpy as np
 from run_table import machine  # benchmarks/ is this script's import root
 
 
-def write_dataset(root: Path, episodes: int, length: int, state_dim: int, key_states: int = 0) -> None:
+def write_dataset(
+    root: Path,
+    episodes: int,
+    length: int,
+    state_dim: int,
+    key_states: int = 0,
+    data_files_size_in_mb: float | None = None,
+) -> None:
     """Random-walk states and random actions; with `key_states` > 0 also an `observation.key_states`
-    column of that many states per episode, shaped as `lerobot-maxmi-discover` writes it."""
+    column of that many states per episode, shaped as `lerobot-maxmi-discover` writes it.
+    `data_files_size_in_mb`: LeRobot's size at which it starts a new parquet file (default 100)."""
+    import datasets
     from lerobot.datasets.lerobot_dataset import LeRobotDataset
 
+    datasets.disable_progress_bars()  # a "Map" bar per data file
     features = {
         "observation.state": {"dtype": "float32", "shape": (state_dim,), "names": None},
         "action": {"dtype": "float32", "shape": (7,), "names": None},
@@ -38,7 +48,14 @@ def write_dataset(root: Path, episodes: int, length: int, state_dim: int, key_st
             "shape": (key_states * state_dim,),
             "names": None,
         }
-    dataset = LeRobotDataset.create("local/speed", fps=20, features=features, root=root, use_videos=False)
+    dataset = LeRobotDataset.create(
+        "local/speed",
+        fps=20,
+        features=features,
+        root=root,
+        use_videos=False,
+        data_files_size_in_mb=data_files_size_in_mb,
+    )
     rng = np.random.default_rng(0)
     for _ in range(episodes):
         states = np.cumsum(rng.normal(size=(length, state_dim)), axis=0).astype(np.float32)
