@@ -20,7 +20,7 @@ import json
 import os
 import platform
 import statistics
-from dataclasses import asdict, dataclass, field
+from dataclasses import MISSING, asdict, dataclass, field, fields
 from pathlib import Path
 
 import draccus
@@ -105,14 +105,16 @@ class Profile:
     context_length: int
     eval_episodes: int
     device: str
+    loader: str = "map"  # lerobot-train's, one of pipeline.LOADERS
 
 
 PROFILES = {
     # About 30 minutes of training per cell on 2 CPU cores (PickCube, with key states).
     "cpu": Profile(100, 1000, 4, 2500, 64, 10, 100, "cpu"),
-    # The paper's context length and batch size on a GPU. LeRobot 0.6.1's loader, not the GPU, bounds
-    # it: ~165 worker-hours to read its samples (docs/RESULTS.md, "CoTPC's data path through LeRobot").
-    "gpu": Profile(500, 3000, 10, 50_000, 256, 60, 100, "cuda"),
+    # The paper's context length and batch size on a GPU. Loading bounds it: LeRobot 0.6.1's map-style
+    # loader would need ~165 worker-hours to read its samples, streaming ~5 (docs/RESULTS.md, "CoTPC's
+    # data path through LeRobot").
+    "gpu": Profile(500, 3000, 10, 50_000, 256, 60, 100, "cuda", loader="streaming"),
 }
 
 
@@ -136,7 +138,11 @@ class TableConfig:
 
 
 def cell_config(task: str, variant: str, seed: int, profile: Profile) -> dict:
-    return {"task": task, "variant": variant, "seed": seed, **asdict(profile)}
+    """The cell's key. A profile field at its default is left out, so that cells stored before the
+    field existed keep their keys."""
+    defaults = {f.name: f.default for f in fields(Profile) if f.default is not MISSING}
+    sizes = {name: value for name, value in asdict(profile).items() if defaults.get(name, MISSING) != value}
+    return {"task": task, "variant": variant, "seed": seed, **sizes}
 
 
 def cell_key(config: dict) -> str:
@@ -150,7 +156,7 @@ def run_cell(config: dict, profile: Profile, out: Path) -> dict:
     cell = out / "cells" / f"{task}_{config['variant']}_seed{seed}"
 
     demos = out / "demos" / f"{task}_{profile.num_demos}"  # every variant and seed trains on these
-    timed(timings, "demos", record_demos, task, profile.num_demos, demos)
+    timed(timings, "demos", record_demos, task, profile.num_demos, demos, loader=profile.loader)
     dataset = demos
     if variant.selector:
         dataset = cell / "dataset"
@@ -168,7 +174,9 @@ def run_cell(config: dict, profile: Profile, out: Path) -> dict:
         timed(timings, "environment_state", environment_state_copy, demos, dataset)
     policy = variant.policy_flags(profile.context_length)
     training = (profile.train_steps, profile.batch_size, profile.device, seed)
-    checkpoint = timed(timings, "training", train_policy, policy, dataset, cell / "train", *training)
+    checkpoint = timed(
+        timings, "training", train_policy, policy, dataset, cell / "train", *training, loader=profile.loader
+    )
     # Seen: the demos' own initial configurations (their seeds start at 0); unseen: fresh seeds.
     splits = {
         "seen": (0, min(profile.eval_episodes, profile.num_demos)),

@@ -19,10 +19,10 @@ from lerobot_maxmi.demos.dataset_writer import copy_with_environment_state
 from lerobot_maxmi.envs.configs import KITCHEN_TASK
 
 
-def timed(timings: dict[str, float], stage: str, work: Callable, *args):
-    """work(*args), with its wall time in seconds stored as timings[stage]."""
+def timed(timings: dict[str, float], stage: str, work: Callable, *args, **kwargs):
+    """work(*args, **kwargs), with its wall time in seconds stored as timings[stage]."""
     start = time.perf_counter()
-    value = work(*args)
+    value = work(*args, **kwargs)
     timings[stage] = round(time.perf_counter() - start, 1)
     return value
 
@@ -40,8 +40,17 @@ def env_flags(task: str) -> tuple[str, ...]:
     return (f"--env.type={env_type}", f"--env.task={task}")
 
 
-def record_demos(task: str, num_episodes: int, root: Path, seed: int = 0) -> None:
-    """Scripted demos of `task` at `root`, topped up (never duplicated) when some are already there."""
+# How lerobot-train reads a dataset: "map" (its default; random access, each sample's windows
+# converted row by row) or "streaming" (in file order through a shuffle buffer, ~30x cheaper a sample,
+# but W loader workers all get files only from at least W x W parquet files). Demos recorded for
+# streaming get a file per episode. docs/RESULTS.md, "CoTPC's data path through LeRobot".
+LOADERS = ("map", "streaming")
+FILE_PER_EPISODE_MB = 0.001  # under one episode's size: LeRobot starts a new file for each
+
+
+def record_demos(task: str, num_episodes: int, root: Path, seed: int = 0, loader: str = "map") -> None:
+    """Scripted demos of `task` at `root`, topped up (never duplicated) when some are already there;
+    laid out for `loader` (one of LOADERS)."""
     run_tool(
         "lerobot-maxmi-demos",
         *env_flags(task),
@@ -50,6 +59,7 @@ def record_demos(task: str, num_episodes: int, root: Path, seed: int = 0) -> Non
         f"--root={root}",
         f"--seed={seed}",
         f"--resume={str(root.exists()).lower()}",
+        *([f"--data_files_size_in_mb={FILE_PER_EPISODE_MB}"] if loader == "streaming" else []),
     )
 
 
@@ -75,9 +85,10 @@ def train_policy(
     batch_size: int,
     device: str,
     seed: int,
+    loader: str = "map",
 ) -> Path:
-    """Train with lerobot-train (`policy_flags`: --policy.type and its options); returns the last
-    checkpoint's pretrained_model directory."""
+    """Train with lerobot-train (`policy_flags`: --policy.type and its options) reading `dataset` with
+    `loader` (one of LOADERS); returns the last checkpoint's pretrained_model directory."""
     shutil.rmtree(run_dir, ignore_errors=True)  # lerobot-train refuses an existing run directory
     run_tool(
         "lerobot-train",
@@ -93,6 +104,7 @@ def train_policy(
         f"--seed={seed}",
         f"--num_workers={min(4, os.cpu_count() or 1)}",  # LeRobot's default 4 oversubscribes small machines
         f"--output_dir={run_dir}",
+        *(["--dataset.streaming=true"] if loader == "streaming" else []),
     )
     return run_dir / "checkpoints" / "last" / "pretrained_model"
 

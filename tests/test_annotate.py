@@ -16,6 +16,7 @@ from lerobot_maxmi.discovery import annotate as annotate_module
 from lerobot_maxmi.discovery.annotate import AnnotateConfig, annotate, check_state_feature
 from lerobot_maxmi.discovery.processor import KEY_FRAMES, KEY_STATES, load_localizer
 from lerobot_maxmi.episode_metadata import GT_KEY_FRAMES, read_episode_column, write_episode_columns
+from lerobot_maxmi.pipeline import FILE_PER_EPISODE_MB
 
 TINY = [
     "--discovery.num_concepts=3",
@@ -28,12 +29,19 @@ TINY = [
 ]
 
 
-def make_dataset(root: Path, lengths=(20, 25, 30, 22, 27), state_dim=4, nan_episode=None, gt=True):
+def make_dataset(
+    root: Path, lengths=(20, 25, 30, 22, 27), state_dim=4, nan_episode=None, gt=True, file_size_mb=None
+):
     from lerobot.datasets.lerobot_dataset import LeRobotDataset
 
     features = {"observation.state": {"dtype": "float32", "shape": (state_dim,), "names": None}}
     dataset = LeRobotDataset.create(
-        repo_id="local/src", fps=10, features=features, root=root, use_videos=False
+        repo_id="local/src",
+        fps=10,
+        features=features,
+        root=root,
+        use_videos=False,
+        data_files_size_in_mb=file_size_mb,
     )
     rng = np.random.default_rng(0)
     for episode, length in enumerate(lengths):
@@ -181,6 +189,18 @@ def test_variable_counts_are_padded_with_the_last_key_state(source, tmp_path):
     assert torch.equal(key_states[-1], final_state) and torch.equal(
         key_states[len(frames[shortest]) - 1], final_state
     )
+
+
+def test_a_file_per_episode_stays_a_file_per_episode(tmp_path):
+    """The layout a stream needs to feed several loader workers (docs/cotpc.md, "Speed") survives."""
+    source = make_dataset(tmp_path / "src", file_size_mb=FILE_PER_EPISODE_MB)
+    out = annotate(config(source, tmp_path / "out", "--selector=ground_truth"))
+    assert len(list(out.glob("data/*/*.parquet"))) == len(list(source.glob("data/*/*.parquet"))) == 5
+    dataset, frames = load(out), read_episode_column(out, KEY_FRAMES)
+    for episode, start in enumerate(dataset.meta.episodes["dataset_from_index"]):
+        key_states = dataset[int(start)][KEY_STATES].view(-1, 4)
+        expected = torch.stack([dataset[int(start) + f]["observation.state"] for f in frames[episode]])
+        assert torch.equal(key_states, expected)
 
 
 def test_ground_truth_selector_needs_ground_truth(tmp_path):

@@ -12,6 +12,7 @@ from lerobot.datasets.lerobot_dataset import LeRobotDataset
 from lerobot.policies.factory import make_policy, make_pre_post_processors
 from lerobot.utils.constants import ACTION, OBS_STATE
 
+from lerobot_maxmi.pipeline import FILE_PER_EPISODE_MB
 from lerobot_maxmi.policies.cotpc.configuration_cotpc import OBS_KEY_STATES, CotpcConfig, CotpcMaxmiConfig
 from lerobot_maxmi.policies.cotpc.modeling_cotpc import CotpcMaxmiPolicy, CotpcPolicy
 
@@ -165,7 +166,7 @@ def test_save_load_roundtrip(policy_class, tmp_path, generator):
 # ---- LeRobot datasets and lerobot-train ------------------------------------------------------------
 
 
-def make_dataset(root: Path, with_key_states: bool) -> LeRobotDataset:
+def make_dataset(root: Path, with_key_states: bool, file_size_mb: float | None = None) -> LeRobotDataset:
     """3 short state-only episodes; optionally the annotator's per-frame key-state column."""
     features = {
         OBS_STATE: {"dtype": "float32", "shape": (STATE_DIM,), "names": None},
@@ -174,7 +175,12 @@ def make_dataset(root: Path, with_key_states: bool) -> LeRobotDataset:
     if with_key_states:
         features[OBS_KEY_STATES] = {"dtype": "float32", "shape": (NUM_KEY_STATES * STATE_DIM,), "names": None}
     dataset = LeRobotDataset.create(
-        repo_id="local/cotpc_test", fps=FPS, features=features, root=root, use_videos=False
+        repo_id="local/cotpc_test",
+        fps=FPS,
+        features=features,
+        root=root,
+        use_videos=False,
+        data_files_size_in_mb=file_size_mb,
     )
     rng = np.random.default_rng(0)
     for length in (12, 15, 6):
@@ -240,13 +246,16 @@ def test_lerobot_train_checkpoints_resumes_and_serves_state_only(tmp_path):
 
 
 @pytest.mark.slow
-def test_lerobot_train_without_key_states_is_the_baseline(tmp_path):
+def test_lerobot_train_without_key_states_is_the_baseline_and_streams(tmp_path):
+    """Streamed by two loader workers from a file per episode, as the gpu table profile trains."""
     root = tmp_path / "plain"
-    make_dataset(root, with_key_states=False)
+    make_dataset(root, with_key_states=False, file_size_mb=FILE_PER_EPISODE_MB)
+    assert len(list(root.glob("data/*/*.parquet"))) == 3
     result = lerobot_train(
         "--policy.type=cotpc", "--policy.device=cpu", "--policy.push_to_hub=false", *TINY_FLAGS,
         "--dataset.repo_id=local/cotpc_test", f"--dataset.root={root}", f"--output_dir={tmp_path / 'run'}",
-        "--steps=2", "--batch_size=4", "--num_workers=0", "--log_freq=1", "--save_checkpoint=false",
+        "--dataset.streaming=true", "--num_workers=2",
+        "--steps=2", "--batch_size=4", "--log_freq=1", "--save_checkpoint=false",
     )  # fmt: skip
     assert result.returncode == 0, result.stderr[-3000:]
     assert "action_loss:" in result.stdout + result.stderr

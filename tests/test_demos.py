@@ -9,6 +9,7 @@ import pytest
 
 from lerobot_maxmi.demos import record as record_module
 from lerobot_maxmi.demos.convert import ConvertConfig, convert
+from lerobot_maxmi.demos.episode import Episode
 from lerobot_maxmi.demos.experts import make_expert
 from lerobot_maxmi.demos.record import RecordDemosConfig, record
 from lerobot_maxmi.demos.rollout import Attempt, key_frame_names, replay, run_expert
@@ -134,6 +135,33 @@ def test_no_successful_attempt_names_the_failure_and_writes_nothing(monkeypatch,
     with pytest.raises(RuntimeError, match=r"None of 3 attempts succeeded.*seed 2: cube out of reach"):
         record(cfg)
     assert list(tmp_path.iterdir()) == []  # neither the dataset nor its staging folder is left
+
+
+class AlwaysSucceeding(AlwaysFailing):
+    def attempt(self, seed: int) -> Attempt:
+        states = np.random.default_rng(seed).normal(size=(6, 3)).astype(np.float32)
+        successes = np.arange(6) == 5
+        episode = Episode(states, states[:, :2].copy(), successes, [2, 5], ["grasp", "final"], seed)
+        return Attempt(seed, 6, episode=episode)
+
+
+def test_small_data_files_give_a_parquet_file_per_episode(monkeypatch, tmp_path):
+    """What lets a stream feed every loader worker (docs/RESULTS.md, "CoTPC's data path")."""
+    monkeypatch.setitem(record_module.DEMO_SOURCES, "maniskill", lambda env_cfg, cfg: AlwaysSucceeding())
+    config = {"env": ManiSkillEnvConfig(), "num_episodes": 3}
+    record(RecordDemosConfig(**config, repo_id="local/default", root=tmp_path / "default"))
+    record(
+        RecordDemosConfig(
+            **config, repo_id="local/small", root=tmp_path / "small", data_files_size_in_mb=0.001
+        )
+    )
+    assert len(list((tmp_path / "default").glob("data/*/*.parquet"))) == 1
+    assert len(list((tmp_path / "small").glob("data/*/*.parquet"))) == 3
+
+
+def test_non_positive_data_file_size_is_refused():
+    with pytest.raises(ValueError, match="--data_files_size_in_mb"):
+        RecordDemosConfig(env=ManiSkillEnvConfig(), repo_id="local/x", data_files_size_in_mb=0)
 
 
 def test_resume_adds_new_seeds_only(pick_dataset, tmp_path):

@@ -110,6 +110,23 @@ def test_cells_stored_by_a_parallel_runner_are_kept(monkeypatch, tmp_path):
     assert "### StackCube-v1" in (tmp_path / "tables.md").read_text()
 
 
+@pytest.mark.parametrize(("profile", "streams"), [("cpu", False), ("gpu", True)])
+def test_a_streaming_profile_records_a_file_per_episode_and_streams(monkeypatch, tmp_path, profile, streams):
+    tools = FakeTools()
+    monkeypatch.setattr(pipeline, "run_tool", tools)
+    run_table.run_table(run_table.TableConfig(profile=profile, variants=["none"], output_dir=tmp_path))
+    file_size = [str(pipeline.FILE_PER_EPISODE_MB)] if streams else []
+    assert tools.flag("lerobot-maxmi-demos", "--data_files_size_in_mb") == file_size
+    assert tools.flag("lerobot-train", "--dataset.streaming") == (["true"] if streams else [])
+
+
+def test_cells_stored_before_the_loader_field_keep_their_keys():
+    config = run_table.cell_config("PickCube-v1", "none", 0, run_table.PROFILES["cpu"])
+    assert "loader" not in config  # the cpu cells in docs/RESULTS.md were stored without it
+    gpu = run_table.cell_config("PickCube-v1", "none", 0, run_table.PROFILES["gpu"])
+    assert gpu["loader"] == "streaming"
+
+
 def test_a_failed_cell_is_not_recorded(monkeypatch, tmp_path):
     monkeypatch.setattr(pipeline, "run_tool", FakeTools(failing="lerobot-train"))
     with pytest.raises(subprocess.CalledProcessError):

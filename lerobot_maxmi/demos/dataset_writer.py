@@ -49,8 +49,17 @@ class DemoDatasetWriter:
     The dataset is created on the first episode (its arrays give the feature shapes).
     """
 
-    def __init__(self, repo_id: str, root: Path, fps: int, task: str, robot_type: str | None = None):
+    def __init__(
+        self,
+        repo_id: str,
+        root: Path,
+        fps: int,
+        task: str,
+        robot_type: str | None = None,
+        data_files_size_in_mb: float | None = None,
+    ):
         self.repo_id, self.root, self.fps, self.task, self.robot_type = repo_id, root, fps, task, robot_type
+        self.data_files_size_in_mb = data_files_size_in_mb  # None: LeRobot's default
         self.staging = root.with_name(root.name + STAGING_SUFFIX)
         self.dataset: LeRobotDataset | None = None
         self.columns: dict[str, list] = {EPISODE_SEED: [], GT_KEY_FRAMES: [], GT_KEY_FRAME_NAMES: []}
@@ -67,14 +76,16 @@ class DemoDatasetWriter:
         *,
         overwrite: bool = False,
         resume: bool = False,
+        data_files_size_in_mb: float | None = None,
     ) -> "DemoDatasetWriter":
-        """A writer for a new dataset at `root`, or for appending to the one there when `resume`."""
+        """A writer for a new dataset at `root`, or for appending to the one there when `resume` (which
+        keeps that dataset's file size)."""
         if root.exists() and not (overwrite or resume):
             raise FileExistsError(
                 f"A dataset already exists at {root}. Pass --resume=true to add episodes to it, "
                 "--overwrite=true to replace it, or choose another --root/--repo_id."
             )
-        writer = cls(repo_id, root, fps, task, robot_type)
+        writer = cls(repo_id, root, fps, task, robot_type, data_files_size_in_mb)
         if writer.staging.exists():
             logger.warning("Removing %s left behind by an interrupted run.", writer.staging)
             shutil.rmtree(writer.staging)
@@ -112,6 +123,7 @@ class DemoDatasetWriter:
                 root=self.staging,
                 robot_type=self.robot_type,
                 use_videos=False,
+                data_files_size_in_mb=self.data_files_size_in_mb,
             )
         for state, action, success in zip(episode.states, episode.actions, episode.successes, strict=True):
             self.dataset.add_frame(

@@ -46,6 +46,10 @@ class RecordDemosConfig:
     randomize_expert: bool = True  # draw the expert's heights, gains and grasp offset per episode
     num_workers: int = 1  # processes generating attempts; the main process writes the dataset
     max_attempts: int | None = None  # give up after this many attempts; default 2 x remaining episodes + 10
+    # LeRobot starts a new parquet file past this size (default 100 MB). A value under one episode's size
+    # (e.g. 0.001) writes a file per episode: `lerobot-train --dataset.streaming=true` keeps W loader
+    # workers busy only with at least W x W files (docs/RESULTS.md, "CoTPC's data path through LeRobot").
+    data_files_size_in_mb: float | None = None
     resume: bool = False
     overwrite: bool = False
     push_to_hub: bool = False
@@ -55,6 +59,11 @@ class RecordDemosConfig:
             raise ValueError("Choose one of --resume=true (add episodes) and --overwrite=true (start over).")
         if self.num_workers < 1:
             raise ValueError(f"--num_workers must be at least 1, got {self.num_workers}.")
+        if self.data_files_size_in_mb is not None and self.data_files_size_in_mb <= 0:
+            raise ValueError(
+                f"--data_files_size_in_mb must be positive, got {self.data_files_size_in_mb} "
+                "(0.001 writes one file per episode; leave it out for LeRobot's 100 MB)."
+            )
         self.root = Path(self.root) if self.root else default_root(self.repo_id)
 
 
@@ -130,6 +139,7 @@ def record(cfg: RecordDemosConfig) -> Path:
         source.robot_type,
         overwrite=cfg.overwrite,
         resume=cfg.resume,
+        data_files_size_in_mb=cfg.data_files_size_in_mb,
     )
     remaining = cfg.num_episodes - writer.num_episodes
     if remaining <= 0:
