@@ -13,6 +13,7 @@ import subprocess
 import sys
 import time
 from collections.abc import Callable
+from dataclasses import dataclass
 from pathlib import Path
 
 from lerobot_maxmi.demos.dataset_writer import copy_with_environment_state
@@ -40,12 +41,25 @@ def env_flags(task: str) -> tuple[str, ...]:
     return (f"--env.type={env_type}", f"--env.task={task}")
 
 
-# How lerobot-train reads a dataset: "map" (its default; random access, each sample's windows
-# converted row by row) or "streaming" (in file order through a shuffle buffer, ~30x cheaper a sample,
-# but W loader workers all get files only from at least W x W parquet files). Demos recorded for
-# streaming get a file per episode. docs/RESULTS.md, "CoTPC's data path through LeRobot".
-LOADERS = ("map", "streaming")
-FILE_PER_EPISODE_MB = 0.001  # under one episode's size: LeRobot starts a new file for each
+FILE_PER_EPISODE_MB = 0.001  # under one episode's size: LeRobot starts a new parquet file for each
+
+
+@dataclass(frozen=True)
+class Loader:
+    """How lerobot-train reads a dataset, and how demos are laid out for it."""
+
+    demo_flags: tuple[str, ...] = ()
+    train_flags: tuple[str, ...] = ()
+
+
+# "map": lerobot-train's default; random access, each sample's windows converted row by row.
+# "streaming": in file order through a shuffle buffer, ~30x cheaper a sample, but W loader workers all
+# get files only from at least W x W parquet files, so its demos get a file per episode.
+# docs/RESULTS.md, "CoTPC's data path through LeRobot".
+LOADERS = {
+    "map": Loader(),
+    "streaming": Loader((f"--data_files_size_in_mb={FILE_PER_EPISODE_MB}",), ("--dataset.streaming=true",)),
+}
 
 
 def record_demos(task: str, num_episodes: int, root: Path, seed: int = 0, loader: str = "map") -> None:
@@ -59,7 +73,7 @@ def record_demos(task: str, num_episodes: int, root: Path, seed: int = 0, loader
         f"--root={root}",
         f"--seed={seed}",
         f"--resume={str(root.exists()).lower()}",
-        *([f"--data_files_size_in_mb={FILE_PER_EPISODE_MB}"] if loader == "streaming" else []),
+        *LOADERS[loader].demo_flags,
     )
 
 
@@ -104,7 +118,7 @@ def train_policy(
         f"--seed={seed}",
         f"--num_workers={min(4, os.cpu_count() or 1)}",  # LeRobot's default 4 oversubscribes small machines
         f"--output_dir={run_dir}",
-        *(["--dataset.streaming=true"] if loader == "streaming" else []),
+        *LOADERS[loader].train_flags,
     )
     return run_dir / "checkpoints" / "last" / "pretrained_model"
 
