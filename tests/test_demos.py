@@ -159,9 +159,14 @@ def test_small_data_files_give_a_parquet_file_per_episode(monkeypatch, tmp_path)
     assert len(list((tmp_path / "small").glob("data/*/*.parquet"))) == 3
 
 
-def test_non_positive_data_file_size_is_refused():
-    with pytest.raises(ValueError, match="--data_files_size_in_mb"):
-        RecordDemosConfig(env=ManiSkillEnvConfig(), repo_id="local/x", data_files_size_in_mb=0)
+def test_non_positive_data_file_size_is_refused_before_anything_is_written(monkeypatch, tmp_path):
+    monkeypatch.setitem(record_module.DEMO_SOURCES, "maniskill", lambda env_cfg, cfg: AlwaysSucceeding())
+    cfg = RecordDemosConfig(
+        env=ManiSkillEnvConfig(), repo_id="local/x", root=tmp_path / "x", data_files_size_in_mb=0
+    )
+    with pytest.raises(ValueError, match="--data_files_size_in_mb must be positive"):
+        record(cfg)
+    assert list(tmp_path.iterdir()) == []
 
 
 def test_resume_adds_new_seeds_only(pick_dataset, tmp_path):
@@ -238,6 +243,12 @@ def test_converter_keeps_stored_flags_as_key_frames(tmp_path):
     # Flag at step t -> frame t + 1 (clipped to the last frame); then the final frame.
     assert read_episode_column(root, GT_KEY_FRAMES) == {0: [3, 7, 9], 1: [4, 7, 7]}
     assert read_episode_column(root, GT_KEY_FRAME_NAMES)[0] == ["grasp", "a_on_b", "final"]
+    assert len(list(root.glob("data/*/*.parquet"))) == 1
+
+    small = ConvertConfig(
+        path=source, repo_id="local/small", root=tmp_path / "small", data_files_size_in_mb=0.001
+    )
+    assert len(list(convert(small).glob("data/*/*.parquet"))) == 2  # a file per kept episode
 
 
 def test_converter_without_obs_says_how_to_replay(tmp_path):

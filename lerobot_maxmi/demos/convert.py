@@ -42,6 +42,7 @@ class ConvertConfig:
     root: Path | None = None  # default: $HF_LEROBOT_HOME/<repo_id>
     task: str | None = None  # default: read from the source (maniskill_h5: json env_info.env_id)
     fps: int | None = None  # default: the source's control rate (ManiSkill 20, Franka Kitchen 12)
+    data_files_size_in_mb: float | None = None  # as lerobot-maxmi-demos': 0.001 gives a file per episode
     overwrite: bool = False
     push_to_hub: bool = False
 
@@ -171,7 +172,13 @@ def convert(cfg: ConvertConfig) -> Path:
         raise FileNotFoundError(f"No such file: {cfg.path}")
     source = FORMATS[cfg.format](cfg)
     writer = DemoDatasetWriter.open(
-        cfg.repo_id, cfg.root, cfg.fps or source.fps, source.task, source.robot_type, overwrite=cfg.overwrite
+        cfg.repo_id,
+        cfg.root,
+        cfg.fps or source.fps,
+        source.task,
+        source.robot_type,
+        overwrite=cfg.overwrite,
+        data_files_size_in_mb=cfg.data_files_size_in_mb,
     )
     try:
         for episode in source.episodes:

@@ -80,6 +80,11 @@ class DemoDatasetWriter:
     ) -> "DemoDatasetWriter":
         """A writer for a new dataset at `root`, or for appending to the one there when `resume` (which
         keeps that dataset's file size)."""
+        if data_files_size_in_mb is not None and data_files_size_in_mb <= 0:
+            raise ValueError(
+                f"--data_files_size_in_mb must be positive, got {data_files_size_in_mb} "
+                "(0.001 writes one file per episode; leave it out for LeRobot's 100 MB)."
+            )
         if root.exists() and not (overwrite or resume):
             raise FileExistsError(
                 f"A dataset already exists at {root}. Pass --resume=true to add episodes to it, "

@@ -59,11 +59,6 @@ class RecordDemosConfig:
             raise ValueError("Choose one of --resume=true (add episodes) and --overwrite=true (start over).")
         if self.num_workers < 1:
             raise ValueError(f"--num_workers must be at least 1, got {self.num_workers}.")
-        if self.data_files_size_in_mb is not None and self.data_files_size_in_mb <= 0:
-            raise ValueError(
-                f"--data_files_size_in_mb must be positive, got {self.data_files_size_in_mb} "
-                "(0.001 writes one file per episode; leave it out for LeRobot's 100 MB)."
-            )
         self.root = Path(self.root) if self.root else default_root(self.repo_id)
 
 
