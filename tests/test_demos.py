@@ -147,6 +147,8 @@ class AlwaysSucceeding(AlwaysFailing):
 
 def test_small_data_files_give_a_parquet_file_per_episode(monkeypatch, tmp_path):
     """What lets a stream feed every loader worker (docs/RESULTS.md, "CoTPC's data path")."""
+    from lerobot.datasets.lerobot_dataset import LeRobotDataset
+
     monkeypatch.setitem(record_module.DEMO_SOURCES, "maniskill", lambda env_cfg, cfg: AlwaysSucceeding())
     config = {"env": ManiSkillEnvConfig(), "num_episodes": 3}
     record(RecordDemosConfig(**config, repo_id="local/default", root=tmp_path / "default"))
@@ -157,6 +159,16 @@ def test_small_data_files_give_a_parquet_file_per_episode(monkeypatch, tmp_path)
     )
     assert len(list((tmp_path / "default").glob("data/*/*.parquet"))) == 1
     assert len(list((tmp_path / "small").glob("data/*/*.parquet"))) == 3
+
+    more = {"num_episodes": 5, "resume": True, "data_files_size_in_mb": 0.001}
+    record(
+        RecordDemosConfig(
+            env=ManiSkillEnvConfig(), repo_id="local/default", root=tmp_path / "default", **more
+        )
+    )
+    assert len(list((tmp_path / "default").glob("data/*/*.parquet"))) == 3  # the new episodes, a file each
+    resumed = LeRobotDataset("local/default", root=tmp_path / "default")
+    assert resumed.meta.total_episodes == 5 and len(resumed) == 30
 
 
 def test_non_positive_data_file_size_is_refused_before_anything_is_written(monkeypatch, tmp_path):

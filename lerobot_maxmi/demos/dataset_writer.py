@@ -78,8 +78,9 @@ class DemoDatasetWriter:
         resume: bool = False,
         data_files_size_in_mb: float | None = None,
     ) -> "DemoDatasetWriter":
-        """A writer for a new dataset at `root`, or for appending to the one there when `resume` (which
-        keeps that dataset's file size)."""
+        """A writer for a new dataset at `root`, or for appending to the one there when `resume`;
+        `data_files_size_in_mb` applies to the files written from then on (None: LeRobot's default, or
+        the resumed dataset's)."""
         if data_files_size_in_mb is not None and data_files_size_in_mb <= 0:
             raise ValueError(
                 f"--data_files_size_in_mb must be positive, got {data_files_size_in_mb} "
@@ -105,6 +106,8 @@ class DemoDatasetWriter:
             self.columns[name] = [values[index] for index in sorted(values)]
         shutil.copytree(root, self.staging)
         self.dataset = LeRobotDataset.resume(self.repo_id, root=self.staging)
+        if self.data_files_size_in_mb is not None:  # for the files written from now on
+            self.dataset.meta.update_chunk_settings(data_files_size_in_mb=self.data_files_size_in_mb)
         recorded_tasks = set(self.dataset.meta.tasks.index)
         if recorded_tasks != {self.task}:
             raise ValueError(
