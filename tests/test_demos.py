@@ -145,7 +145,7 @@ class AlwaysSucceeding(AlwaysFailing):
         return Attempt(seed, 6, episode=episode)
 
 
-def test_small_data_files_give_a_parquet_file_per_episode(monkeypatch, tmp_path):
+def test_small_data_files_give_a_parquet_file_per_episode_also_when_resuming(monkeypatch, tmp_path):
     """What lets a stream feed every loader worker (docs/RESULTS.md, "CoTPC's data path")."""
     from lerobot.datasets.lerobot_dataset import LeRobotDataset
 
@@ -160,12 +160,8 @@ def test_small_data_files_give_a_parquet_file_per_episode(monkeypatch, tmp_path)
     assert len(list((tmp_path / "default").glob("data/*/*.parquet"))) == 1
     assert len(list((tmp_path / "small").glob("data/*/*.parquet"))) == 3
 
-    more = {"num_episodes": 5, "resume": True, "data_files_size_in_mb": 0.001}
-    record(
-        RecordDemosConfig(
-            env=ManiSkillEnvConfig(), repo_id="local/default", root=tmp_path / "default", **more
-        )
-    )
+    more = {**config, "num_episodes": 5, "resume": True, "data_files_size_in_mb": 0.001}
+    record(RecordDemosConfig(**more, repo_id="local/default", root=tmp_path / "default"))
     assert len(list((tmp_path / "default").glob("data/*/*.parquet"))) == 3  # the new episodes, a file each
     resumed = LeRobotDataset("local/default", root=tmp_path / "default")
     assert resumed.meta.total_episodes == 5 and len(resumed) == 30
