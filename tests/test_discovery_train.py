@@ -14,6 +14,9 @@ from lerobot_maxmi.discovery.train import (
     fit_localizer,
     train_localizer,
 )
+from tests.conftest import load_benchmark
+
+discovery_planted = load_benchmark("discovery_planted")
 
 
 def tiny_config(**overrides):
@@ -89,42 +92,14 @@ def test_bad_config_is_rejected_clearly(field, value, message):
         tiny_config(**{field: value})
 
 
-def random_walks_with_pauses(count=64, seed=0):
-    """Random walks that hold still for 6 frames around two planted times per episode.
-
-    While still, s_t = s_t−Δt in every demonstration, so MI(s_t; s_t−Δt) across demonstrations
-    peaks there: the structure MaxMI looks for (cf. the robot pausing while it grasps).
-    """
-    generator = torch.Generator().manual_seed(seed)
-    episodes, pauses = [], []
-    for _ in range(count):
-        length = int(torch.randint(50, 71, (1,), generator=generator))
-        steps = torch.randn(length, 3, generator=generator)
-        centres = [int(length * (low + 0.1 * torch.rand(1, generator=generator))) for low in (0.25, 0.65)]
-        for centre in centres:
-            steps[centre - 3 : centre + 3] = 0.0
-        episodes.append(torch.cumsum(steps, 0))
-        pauses.append(centres)
-    return episodes, pauses
-
-
-def test_maxmi_finds_planted_pauses():
-    episodes, pauses = random_walks_with_pauses()
-    cfg = DiscoveryConfig(
-        num_concepts=4,
-        steps=200,
-        append_final_frame=False,
-        model=KSLNetArchitecture(encoder_dims=(64, 64), head_dims=(64,)),
-    )
-    found = fit_localizer(episodes, cfg).key_frames(episodes)
-    errors = torch.tensor(
-        [
-            [min(abs(frame - centre) for frame in frames) / len(states) for centre in centres]
-            for frames, centres, states in zip(found, pauses, episodes, strict=True)
-        ]
-    )  # (episodes, pauses): distance to the nearest discovered key frame, as a fraction of length
-    assert errors.median() <= 0.03, f"median error {errors.median():.3f} of the episode length"
-    assert (errors <= 0.05).float().mean() >= 0.85, f"within 5%: {(errors <= 0.05).float().mean(0).tolist()}"
+@pytest.mark.parametrize(("state_mi_mode", "data_seed", "steps"), [("per_dim", 0, 200), ("sliced", 2, 600)])
+def test_maxmi_finds_planted_pauses(state_mi_mode, data_seed, steps):
+    # Per-dim MI (the default) finds both pauses on draw 0 but only one on draws 2, 3, 4 and 6, where
+    # sliced MI finds both (benchmarks/discovery_planted.py; docs/RESULTS.md).
+    cfg = discovery_planted.planted_config(state_mi_mode=state_mi_mode, steps=steps)
+    errors = discovery_planted.pause_errors(cfg, data_seed)
+    median, within = errors.median().item(), (errors <= 0.05).float().mean(0).tolist()
+    assert discovery_planted.within_bounds(errors), f"median error {median:.3f}; pauses within 5%: {within}"
 
 
 FAULTS_WHILE_REALLOCATING = """
