@@ -2,13 +2,15 @@
 
     .venv/bin/python benchmarks/discovery_planted.py                       # both modes, data seeds 0-7
     .venv/bin/python benchmarks/discovery_planted.py --modes sliced --data_seeds 0 2 --steps 600
+    .venv/bin/python benchmarks/discovery_planted.py --modes per_dim --concept_start spread
 
 Each data seed draws 64 episodes of a 3-d random walk (50-70 frames) that holds still for 6
 frames around two planted times. While still, s_t = s_t-Δt in every episode, so MI across
 episodes peaks there: the structure MaxMI looks for. A small KSL-Net (K = 4, no final frame)
 trains on them; each pause is scored by its distance to the nearest key frame, as a fraction of
-the episode. The unit test (tests/test_discovery_train.py) holds two cases to the bounds of the
-last column: per-dim MI (the default) on data seed 0 after 200 steps, sliced MI on data seed 2.
+the episode. The unit test (tests/test_discovery_train.py) holds three cases to the bounds of the
+last column: per-dim MI (the default) on data seed 0 after 200 steps, sliced MI on data seed 2, and
+per-dim MI with the concepts started spread out (--concept_start spread) on data seed 2.
 """
 
 import argparse
@@ -16,6 +18,7 @@ import argparse
 import torch
 from run_table import machine  # benchmarks/ is this script's import root
 
+from lerobot_maxmi.discovery.ksl_net import CONCEPT_STARTS
 from lerobot_maxmi.discovery.train import DiscoveryConfig, KSLNetArchitecture, fit_localizer
 from lerobot_maxmi.mi import STATE_MI_MODES
 
@@ -38,9 +41,9 @@ def random_walks_with_pauses(count: int = 64, seed: int = 0) -> tuple[list[torch
     return episodes, pauses
 
 
-def planted_config(**overrides) -> DiscoveryConfig:
+def planted_config(concept_start: str = "paper", **overrides) -> DiscoveryConfig:
     """The discovery defaults, with K = 4 and a small KSL-Net; no final frame, which is not a pause."""
-    small = KSLNetArchitecture(encoder_dims=(64, 64), head_dims=(64,))
+    small = KSLNetArchitecture(encoder_dims=(64, 64), head_dims=(64,), concept_start=concept_start)
     return DiscoveryConfig(**{"num_concepts": 4, "append_final_frame": False, "model": small, **overrides})
 
 
@@ -72,13 +75,19 @@ def main() -> None:
     parser.add_argument("--data_seeds", nargs="+", type=int, default=list(range(8)))
     parser.add_argument("--steps", type=int, default=600, help="KSL-Net training steps")
     parser.add_argument("--seed", type=int, default=0, help="--discovery.seed")
+    parser.add_argument(
+        "--concept_start", default="paper", choices=CONCEPT_STARTS, help="--discovery.model.concept_start"
+    )
     args = parser.parse_args()
 
-    print(f"\nplanted pauses, {machine()}, {args.steps} steps, discovery seed {args.seed}\n")
+    print(
+        f"\nplanted pauses, {machine()}, {args.steps} steps, discovery seed {args.seed}, "
+        f"concepts start {args.concept_start}\n"
+    )
     print("| state MI | data seed | median error | within 5% | within the test's bounds |")
     print("|---|---:|---:|---:|---|")
     for mode in args.modes:
-        cfg = planted_config(state_mi_mode=mode, steps=args.steps, seed=args.seed)
+        cfg = planted_config(args.concept_start, state_mi_mode=mode, steps=args.steps, seed=args.seed)
         for data_seed in args.data_seeds:
             errors = pause_errors(cfg, data_seed)
             scores = f"{errors.median():.1%} | {within_5_percent(errors):.0%}"

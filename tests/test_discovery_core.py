@@ -12,6 +12,7 @@ from lerobot_maxmi.discovery.losses import (
     released_shifted_states,
 )
 from lerobot_maxmi.discovery.nms import kept_indices, shared_concepts
+from lerobot_maxmi.discovery.processor import MaxmiDiscoveryStep, load_localizer, save_localizer
 from lerobot_maxmi.mi import load_estimator
 
 
@@ -26,6 +27,21 @@ def test_ksl_net_shapes_and_round_trip(tmp_path):
     assert logits.shape == (4, 3, 16)
     net.save_pretrained(tmp_path)
     torch.testing.assert_close(KSLNet.from_pretrained(tmp_path)(states), logits)
+
+
+def test_spread_concepts_start_in_order_and_survive_a_save(tmp_path):
+    torch.manual_seed(0)
+    sizes = dict(state_dim=2, length=50, num_concepts=4, embed_dim=4, encoder_dims=(16,), head_dims=(16,))
+    states = torch.randn(3, 50, 2)
+    paper = soft_argmax(KSLNet(**sizes)(states))
+    assert (paper - 24.5).abs().max() < 2  # the untrained head: every concept near the middle
+    spread = KSLNet(**sizes, concept_start="spread")
+    assert (soft_argmax(spread(states)).diff(dim=1) > 5).all()  # one concept per stretch, in order
+    architecture = {k: sizes[k] for k in ("embed_dim", "encoder_dims", "head_dims")}
+    step = MaxmiDiscoveryStep.from_net(spread, [0, 1, 2, 3], True, concept_start="spread", **architecture)
+    save_localizer(step, tmp_path)
+    episodes = list(torch.randn(2, 60, 2))
+    assert load_localizer(tmp_path).key_frames(episodes) == step.key_frames(episodes)
 
 
 def test_ksl_net_uses_position_and_concept():

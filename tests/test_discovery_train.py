@@ -92,11 +92,15 @@ def test_bad_config_is_rejected_clearly(field, value, message):
         tiny_config(**{field: value})
 
 
-@pytest.mark.parametrize(("state_mi_mode", "data_seed", "steps"), [("per_dim", 0, 200), ("sliced", 2, 600)])
-def test_maxmi_finds_planted_pauses(state_mi_mode, data_seed, steps):
+@pytest.mark.parametrize(
+    ("state_mi_mode", "concept_start", "data_seed", "steps"),
+    [("per_dim", "paper", 0, 200), ("sliced", "paper", 2, 600), ("per_dim", "spread", 2, 200)],
+)
+def test_maxmi_finds_planted_pauses(state_mi_mode, concept_start, data_seed, steps):
     # Per-dim MI (the default) finds both pauses on draw 0 but only one on draws 2, 3, 4 and 6, where
-    # sliced MI finds both (benchmarks/discovery_planted.py; docs/RESULTS.md).
-    cfg = discovery_planted.planted_config(state_mi_mode=state_mi_mode, steps=steps)
+    # sliced MI, or per-dim MI with spread concepts, finds both (benchmarks/discovery_planted.py;
+    # docs/RESULTS.md).
+    cfg = discovery_planted.planted_config(concept_start, state_mi_mode=state_mi_mode, steps=steps)
     errors = discovery_planted.pause_errors(cfg, data_seed)
     median, within = errors.median().item(), (errors <= 0.05).float().mean(0).tolist()
     assert discovery_planted.within_bounds(errors), f"median error {median:.3f}; pauses within 5%: {within}"

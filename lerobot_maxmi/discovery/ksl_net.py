@@ -5,6 +5,11 @@ described by [standardized s_t ; positional embedding(t) ; concept embedding(k)]
 (kernel-size-1) convolutional encoder maps the steps to features, a max-pool over time summarizes
 the trajectory, and an MLP gives T logits: where concept k sits in this trajectory. The
 positional embedding is what lets a max-pooled, pointwise encoder know *when* a state occurs.
+
+Where the concepts start (`concept_start`): "paper" leaves it to the untrained head, whose
+near-uniform p_k put every t̂ near the middle of the episode; "spread" (ours) adds a learned bias
+to each concept's logits that starts as a bump on its own K-th of the episode, so that training
+moves each concept to a key state near its stretch instead of several to the same one.
 """
 
 import warnings
@@ -15,6 +20,7 @@ from huggingface_hub import PyTorchModelHubMixin
 from torch import Tensor, nn
 
 EPISODES_PER_FORWARD = 64  # bounds the (episodes, K, T, hidden) activations of one forward pass
+CONCEPT_STARTS = ("paper", "spread")
 
 
 def resample(states: Tensor, length: int) -> Tensor:
@@ -30,6 +36,15 @@ def to_episode_frame(t: Tensor, episode_length: int, length: int) -> Tensor:
 def stack_resampled(episodes: list[Tensor], length: int) -> Tensor:
     """(E, length, D): every (L_i, D) episode resampled to a common length."""
     return torch.stack([resample(states.float(), length) for states in episodes])
+
+
+def spread_start(num_concepts: int, length: int) -> Tensor:
+    """(K, T) logits: concept k a Gaussian bump (log-density, one K-th of the episode wide) centred on
+    the k-th of K equal stretches of the T steps."""
+    steps = torch.arange(length, dtype=torch.float32)
+    width = (length - 1) / num_concepts
+    centres = (torch.arange(num_concepts) + 0.5) * width
+    return -0.5 * ((steps - centres[:, None]) / width) ** 2
 
 
 def soft_argmax(logits: Tensor) -> Tensor:
@@ -103,14 +118,20 @@ class KSLNet(nn.Module, PyTorchModelHubMixin, library_name="lerobot_maxmi", tags
         embed_dim: int,
         encoder_dims: tuple[int, ...],
         head_dims: tuple[int, ...],
+        concept_start: str = "paper",
     ):
         super().__init__()
+        if concept_start not in CONCEPT_STARTS:
+            raise ValueError(
+                f"unknown concept_start {concept_start!r}; choose one of {', '.join(CONCEPT_STARTS)}"
+            )
         self.length = length
         self.num_concepts = num_concepts
         self.position = nn.Embedding(length, embed_dim)
         self.concept = nn.Embedding(num_concepts, embed_dim)
         self.encoder = mlp([state_dim + 2 * embed_dim, *encoder_dims])  # pointwise over time
         self.head = mlp([encoder_dims[-1], *head_dims, length])
+        self.start = nn.Parameter(spread_start(num_concepts, length)) if concept_start == "spread" else None
         self.register_buffer("state_mean", torch.zeros(state_dim))
         self.register_buffer("state_std", torch.ones(state_dim))
 
@@ -130,7 +151,8 @@ class KSLNet(nn.Module, PyTorchModelHubMixin, library_name="lerobot_maxmi", tags
             pooled = features.max(dim=2).values
         else:
             pooled = max_over_time(self.encoder[1:-1](features), self.encoder[-1])
-        return self.head(F.relu(pooled))  # (B, K, T)
+        logits = self.head(F.relu(pooled))  # (B, K, T)
+        return logits if self.start is None else logits + self.start
 
     def _first_layer(self, states: Tensor) -> Tensor:
         """The encoder's first layer on [standardized s_t ; position(t) ; concept(k)] for every (k, t).

@@ -41,6 +41,7 @@ class MaxmiDiscoveryStep(ProcessorStep):
     embed_dim: int = 10
     encoder_dims: list[int] = field(default_factory=lambda: [256, 256, 256])
     head_dims: list[int] = field(default_factory=lambda: [256, 128])
+    concept_start: str = "paper"
     state_key: str = OBS_STATE
 
     def __post_init__(self):
@@ -53,11 +54,12 @@ class MaxmiDiscoveryStep(ProcessorStep):
             self.embed_dim,
             tuple(self.encoder_dims),
             tuple(self.head_dims),
+            self.concept_start,
         ).eval()
 
     @classmethod
     def from_net(cls, net: KSLNet, concepts: list[int], append_final_frame: bool, **architecture):
-        """Wrap a trained KSL-Net; `architecture` = the embed_dim/encoder_dims/head_dims it was built with."""
+        """Wrap a trained KSL-Net; `architecture` = the `KSLNetArchitecture` fields it was built with."""
         step = cls(
             state_dim=net.state_mean.shape[0],
             length=net.length,
@@ -118,6 +120,7 @@ class MaxmiDiscoveryStep(ProcessorStep):
             "embed_dim": self.embed_dim,
             "encoder_dims": list(self.encoder_dims),
             "head_dims": list(self.head_dims),
+            "concept_start": self.concept_start,
             "state_key": self.state_key,
         }
 

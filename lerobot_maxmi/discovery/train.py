@@ -30,6 +30,9 @@ class KSLNetArchitecture:
     embed_dim: int = 10
     encoder_dims: tuple[int, ...] = (256, 256, 256)
     head_dims: tuple[int, ...] = (256, 128)
+    # Where the concepts start: "paper" (where the untrained head puts them) or "spread" (one per
+    # K-th of the episode; docs/discovery.md). Not the default until measured on every task.
+    concept_start: str = "paper"
 
 
 @dataclass
