@@ -92,6 +92,11 @@ def test_bad_config_is_rejected_clearly(field, value, message):
         tiny_config(**{field: value})
 
 
+def test_an_unknown_concept_start_is_rejected_before_training():
+    with pytest.raises(ValueError, match="unknown model.concept_start 'middle'; choose one of paper, spread"):
+        tiny_config(model=KSLNetArchitecture(concept_start="middle"))
+
+
 @pytest.mark.parametrize(
     ("state_mi_mode", "concept_start", "data_seed", "steps"),
     [("per_dim", "paper", 0, 200), ("sliced", "paper", 2, 600), ("per_dim", "spread", 2, 200)],

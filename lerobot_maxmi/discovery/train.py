@@ -2,6 +2,7 @@
 
 import logging
 from dataclasses import asdict, dataclass, field
+from operator import attrgetter
 
 import torch
 from accelerate import Accelerator, PartialState
@@ -9,7 +10,7 @@ from torch import Tensor
 from tqdm import tqdm
 
 from lerobot_maxmi.cpu_memory import reuse_freed_memory
-from lerobot_maxmi.discovery.ksl_net import KSLNet, soft_argmax, stack_resampled
+from lerobot_maxmi.discovery.ksl_net import CONCEPT_STARTS, KSLNet, soft_argmax, stack_resampled
 from lerobot_maxmi.discovery.losses import diversity_loss, maxmi_loss, ordering_loss, released_maxmi_loss
 from lerobot_maxmi.discovery.nms import shared_concepts
 from lerobot_maxmi.discovery.processor import MaxmiDiscoveryStep
@@ -64,10 +65,15 @@ class DiscoveryConfig:
     def __post_init__(self):
         if self.num_concepts < 1:
             raise ValueError(f"num_concepts must be >= 1, got {self.num_concepts}")
-        choices = {"objective": OBJECTIVES, "estimator": tuple(ESTIMATORS), "state_mi_mode": STATE_MI_MODES}
+        choices = {
+            "objective": OBJECTIVES,
+            "estimator": tuple(ESTIMATORS),
+            "state_mi_mode": STATE_MI_MODES,
+            "model.concept_start": CONCEPT_STARTS,
+        }
         for name, valid in choices.items():
-            if getattr(self, name) not in valid:
-                raise ValueError(f"unknown {name} {getattr(self, name)!r}; choose one of {', '.join(valid)}")
+            if (value := attrgetter(name)(self)) not in valid:
+                raise ValueError(f"unknown {name} {value!r}; choose one of {', '.join(valid)}")
 
 
 def check_episodes(episodes: list[Tensor], num_concepts: int) -> None:
