@@ -97,14 +97,14 @@ def main() -> None:
         start = time.perf_counter()
         subprocess.run(command, check=True)
         seconds = time.perf_counter() - start
-    peak_gb = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss / 1024**2  # ru_maxrss is in KiB
+    peak_bytes = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss * 1024  # ru_maxrss is in KiB
 
     print(f"\nlerobot-maxmi-discover, {machine()}, flags: {' '.join(flags)}\n")
     print("| episodes x frames | state dim | training steps | wall time | peak RSS | targets |")
     print("|---|---:|---:|---:|---:|---|")
     print(
         f"| {args.episodes} x {args.length} | {args.state_dim} | {args.steps} | {seconds / 60:.1f} min "
-        f"| {peak_gb:.2f} GB | <= 10 min, <= 4 GB |"
+        f"| {peak_bytes / 1e9:.2f} GB ({peak_bytes / 2**30:.2f} GiB) | <= 10 min, <= 4 GB |"
     )
 
 
