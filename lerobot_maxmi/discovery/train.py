@@ -32,7 +32,7 @@ class KSLNetArchitecture:
     encoder_dims: tuple[int, ...] = (256, 256, 256)
     head_dims: tuple[int, ...] = (256, 128)
     # Where the concepts start: "paper" (where the untrained head puts them) or "spread" (one per
-    # K-th of the episode; docs/discovery.md). Not the default until measured on every task.
+    # K-th of the episode; ours, so not the default; docs/discovery.md, "Which flags for which data").
     concept_start: str = "paper"
 
 
