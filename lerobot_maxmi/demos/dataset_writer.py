@@ -23,6 +23,7 @@ from lerobot_maxmi.episode_metadata import (
     read_episode_column,
     write_episode_columns,
 )
+from lerobot_maxmi.frame_columns import add_frame_columns, vector_column
 
 logger = logging.getLogger(__name__)
 
@@ -177,9 +178,6 @@ def copy_with_environment_state(source_root: Path, output_root: Path, repo_id: s
     """A copy of the demos at `source_root` whose state is also stored as `observation.environment_state`:
     LeRobot's ACT and Diffusion need that input when there are no images (our env types observe it too).
     The source is only read."""
-    from lerobot.datasets.dataset_tools import add_features
-
     source = LeRobotDataset(repo_id, root=source_root)
-    state = source.meta.features[OBS_STATE]
-    copy_state = (lambda row, _episode, _frame: row[OBS_STATE], state)
-    return add_features(source, {OBS_ENV_STATE: copy_state}, output_dir=output_root, repo_id=repo_id)
+    copy_state = (lambda rows: vector_column(rows, OBS_STATE), source.meta.features[OBS_STATE])
+    return add_frame_columns(source, {OBS_ENV_STATE: copy_state}, output_root, repo_id)

@@ -38,7 +38,6 @@ from accelerate import PartialState
 from draccus.utils import ParsingError
 from huggingface_hub import HfApi
 from huggingface_hub.errors import OfflineModeIsEnabled
-from lerobot.datasets.dataset_tools import add_features
 from lerobot.datasets.io_utils import write_stats
 from lerobot.datasets.lerobot_dataset import LeRobotDataset
 from lerobot.utils import constants
@@ -57,6 +56,7 @@ from lerobot_maxmi.discovery.selectors import (
 )
 from lerobot_maxmi.discovery.train import DiscoveryConfig, check_episodes, cpu_process_group
 from lerobot_maxmi.episode_metadata import GT_KEY_FRAMES, read_episode_column, write_episode_columns
+from lerobot_maxmi.frame_columns import add_frame_columns, vector_column
 
 SELECTOR_COLUMN = "maxmi/selector"
 PLOTS_DIR = "plots"
@@ -120,8 +120,7 @@ def load_episode_states(root: Path, state_key: str) -> dict[int, Tensor]:
     pieces: dict[int, list[np.ndarray]] = defaultdict(list)
     for path in tqdm(sorted((root / "data").glob("*/*.parquet")), desc="read states"):
         table = pq.read_table(path, columns=[state_key, "episode_index", "frame_index"])
-        column = table[state_key].combine_chunks()
-        states = np.asarray(column.flatten(), dtype=np.float32).reshape(len(column), -1)
+        states = vector_column(table, state_key)
         episode, frame = (table[name].to_numpy() for name in ("episode_index", "frame_index"))
         order = np.lexsort((frame, episode))
         states, episode = states[order], episode[order]
@@ -213,12 +212,11 @@ def build_output(cfg: AnnotateConfig, source: LeRobotDataset, staging: Path) -> 
 
     root = staging / "dataset"
     feature = key_state_feature(source.meta.features[cfg.state_key], num_key_states)
-    add_features(  # one pass over the data files; a callable keeps memory at one value per episode
-        source,
-        {KEY_STATES: (lambda _row, episode, _frame: by_episode[int(episode)], feature)},
-        output_dir=root,
-        repo_id=cfg.output.repo_id,
-    )
+
+    def episode_key_states(rows) -> np.ndarray:  # the same for every frame of an episode
+        return np.stack([by_episode[episode] for episode in rows["episode_index"].to_pylist()])
+
+    add_frame_columns(source, {KEY_STATES: (episode_key_states, feature)}, root, cfg.output.repo_id)
     write_episode_columns(root, {KEY_FRAMES: frames, SELECTOR_COLUMN: dict.fromkeys(frames, cfg.selector)})
     write_key_state_stats(source, root, cfg.state_key, num_key_states)
     selector.save(root)
