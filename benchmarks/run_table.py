@@ -78,6 +78,12 @@ VARIANTS = {
     "maxmi_k10": Variant("maxmi", num_concepts=10),
     # The setting that meets the discovery target on StackCube (docs/RESULTS.md, "sliced MI").
     "maxmi_k10_sliced": Variant("maxmi", ("--discovery.state_mi_mode=sliced",), num_concepts=10),
+    # Sliced MI and spread concepts: docs/discovery.md's flags for ManiSkill-like tasks.
+    "maxmi_k10_sliced_spread": Variant(
+        "maxmi",
+        ("--discovery.state_mi_mode=sliced", "--discovery.model.concept_start=spread"),
+        num_concepts=10,
+    ),
     "maxmi_mi_only": Variant("maxmi", ("--discovery.diversity_weight=0",)),
     "maxmi_diversity_only": Variant("maxmi", ("--discovery.mi_weight=0",)),
     "ground_truth": Variant("ground_truth"),
