@@ -6,6 +6,7 @@ by about 1.5 GiB. Here every data file is read and written one record batch at a
 stays at one batch whatever the dataset's size (docs/RESULTS.md, "Annotation memory").
 """
 
+import dataclasses
 import shutil
 from collections.abc import Callable, Mapping
 from pathlib import Path
@@ -14,7 +15,7 @@ import numpy as np
 import pyarrow as pa
 import pyarrow.parquet as pq
 from lerobot.datasets.feature_utils import get_hf_features_from_features
-from lerobot.datasets.io_utils import load_info, write_info
+from lerobot.datasets.io_utils import write_info
 from lerobot.datasets.lerobot_dataset import LeRobotDataset
 
 # Rows per record batch: a few MB of states, and far below a data file's 100 MB.
@@ -35,10 +36,8 @@ def add_frame_columns(
     check_new_features(source.meta.features, columns)
     features = {**source.meta.features, **{name: info for name, (_, info) in columns.items()}}
     output_root = Path(output_root)
-    copy_metadata_and_videos(Path(source.root), output_root)
-    info = load_info(output_root)
-    info.features = features
-    write_info(info, output_root)
+    copy_metadata_and_videos(Path(source.root), output_root, source.meta.video_path)
+    write_info(dataclasses.replace(source.meta.info, features=features), output_root)
     schema = get_hf_features_from_features(features).arrow_schema
     for path in sorted((Path(source.root) / "data").glob("*/*.parquet")):
         target = output_root / path.relative_to(source.root)
@@ -55,10 +54,9 @@ def check_new_features(existing: dict, columns: Mapping[str, tuple[FrameValues, 
             raise ValueError(f"{name!r}: only 1-D features can be added, got shape {info.get('shape')}")
 
 
-def copy_metadata_and_videos(source_root: Path, output_root: Path) -> None:
+def copy_metadata_and_videos(source_root: Path, output_root: Path, video_path: str | None) -> None:
     """All of the dataset but its data files, which are rewritten instead."""
     shutil.copytree(source_root / "meta", output_root / "meta")
-    video_path = load_info(source_root).video_path
     videos = source_root / Path(video_path).parts[0] if video_path else None
     if videos is not None and videos.is_dir():
         shutil.copytree(videos, output_root / videos.name)
@@ -84,7 +82,7 @@ def to_arrow(values: np.ndarray) -> pa.Array:
         raise ValueError(f"frame values must be (rows, dim), got shape {values.shape}")
     if values.shape[1] == 1:
         return pa.array(values[:, 0])
-    return pa.FixedSizeListArray.from_arrays(pa.array(np.ascontiguousarray(values).ravel()), values.shape[1])
+    return pa.FixedSizeListArray.from_arrays(pa.array(values.ravel()), values.shape[1])
 
 
 def vector_column(rows: pa.RecordBatch | pa.Table, name: str) -> np.ndarray:
@@ -95,8 +93,12 @@ def vector_column(rows: pa.RecordBatch | pa.Table, name: str) -> np.ndarray:
     return np.asarray(column.flatten(), dtype=np.float32).reshape(len(column), -1)
 
 
+def episode_starts(episode_index: np.ndarray) -> np.ndarray:
+    """The rows where a new episode begins, in rows grouped by episode."""
+    return np.flatnonzero(np.diff(episode_index, prepend=-1))
+
+
 def split_by_episode(table: pa.Table) -> list[pa.Table]:
-    episodes = table.column("episode_index").to_numpy()
-    starts = np.flatnonzero(np.diff(episodes, prepend=episodes[:1] - 1))
-    stops = np.append(starts[1:], len(episodes))
+    starts = episode_starts(table.column("episode_index").to_numpy())
+    stops = np.append(starts[1:], table.num_rows)
     return [table.slice(start, stop - start) for start, stop in zip(starts, stops, strict=True)]

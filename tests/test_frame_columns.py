@@ -42,6 +42,15 @@ def test_column_is_added_to_a_copy_batch_by_batch(state_dataset, tmp_path, monke
     assert all(len(set(g["episode_index"].to_pylist())) == 1 for g in groups)
 
 
+def test_one_dimensional_values_are_stored_as_scalars(state_dataset, tmp_path):
+    first = {"dtype": "float32", "shape": (1,), "names": None}
+    column = (lambda rows: vector_column(rows, "observation.state")[:, :1], first)
+
+    copy = add_frame_columns(state_dataset, {"first": column}, tmp_path / "copy", "local/copy")
+
+    assert copy[30]["first"].item() == state_dataset[30]["observation.state"][0].item()
+
+
 def test_videos_are_copied(tmp_path):
     from lerobot.datasets.lerobot_dataset import LeRobotDataset
 

@@ -56,7 +56,7 @@ from lerobot_maxmi.discovery.selectors import (
 )
 from lerobot_maxmi.discovery.train import DiscoveryConfig, check_episodes, cpu_process_group
 from lerobot_maxmi.episode_metadata import GT_KEY_FRAMES, read_episode_column, write_episode_columns
-from lerobot_maxmi.frame_columns import add_frame_columns, vector_column
+from lerobot_maxmi.frame_columns import add_frame_columns, episode_starts, vector_column
 
 SELECTOR_COLUMN = "maxmi/selector"
 PLOTS_DIR = "plots"
@@ -124,7 +124,7 @@ def load_episode_states(root: Path, state_key: str) -> dict[int, Tensor]:
         episode, frame = (table[name].to_numpy() for name in ("episode_index", "frame_index"))
         order = np.lexsort((frame, episode))
         states, episode = states[order], episode[order]
-        starts = np.flatnonzero(np.diff(episode, prepend=-1))  # first row of each episode in the file
+        starts = episode_starts(episode)
         for index, rows in zip(episode[starts], np.split(states, starts[1:]), strict=True):
             pieces[int(index)].append(rows)
     return {index: torch.from_numpy(np.concatenate(parts)) for index, parts in sorted(pieces.items())}
